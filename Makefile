@@ -1,0 +1,34 @@
+# cvslam: every target sets itself up on a machine with only Python >= 3.11.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.install-stamp
+SHARED_DATA ?= $(if $(CVSLAM_SHARED_DATA),$(CVSLAM_SHARED_DATA),../shared/data)
+DEMO_DIR ?= runs/demo
+
+.PHONY: install test lint bench demo clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11) and "cvslam needs Python >= 3.11")'
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+test: install
+	$(BIN)/python -m pytest -q
+
+lint: install
+	$(BIN)/ruff check cvslam_cli tests
+	$(BIN)/ruff format --check cvslam_cli tests
+
+bench: install
+	$(BIN)/python -m pytest -q -s tests/benchmarks -p no:cacheprovider -o addopts=""
+
+demo: install
+	@bash scripts/demo.sh "$(BIN)/cvslam" "$(SHARED_DATA)" "$(DEMO_DIR)"
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache .ruff_cache

@@ -1,0 +1,3 @@
+from cvslam_cli.cli import main
+
+main()

@@ -1,0 +1,174 @@
+"""The `cvslam` command line: thin click commands over the stage modules.
+
+The one error boundary (DESIGN.md section 6, convention 2): a `CvslamError` prints one line
+naming the file, topic or key at fault and exits 1; usage errors exit 2; anything else is a
+bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+
+from cvslam_cli import __version__
+from cvslam_cli.config import Config, dump_config, load_config
+from cvslam_cli.errors import CvslamError
+
+log = logging.getLogger("cvslam")
+
+
+class _OneLineFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        prefix = "" if record.levelno == logging.INFO else f"{record.levelname.lower()}: "
+        return f"cvslam: {prefix}{record.getMessage()}"
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_OneLineFormatter())
+    log.handlers[:] = [handler]
+    log.setLevel(level)
+    log.propagate = False
+
+
+def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Add `--config FILE` (repeatable) and `--set key.path=value` (repeatable); the
+    command receives the resolved `cfg: Config`."""
+
+    @click.option("--config", "config_files", multiple=True, metavar="FILE",
+                  type=click.Path(dir_okay=False, path_type=Path),
+                  help="YAML config file (repeatable; later files override earlier ones).")
+    @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
+                  help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 "
+                       "(repeatable).")
+    @functools.wraps(func)
+    def wrapper(*args: Any, config_files: Sequence[Path], overrides: Sequence[str],
+                **kwargs: Any) -> Any:
+        cfg = load_config(config_files, overrides)
+        return func(*args, cfg=cfg, **kwargs)
+
+    return wrapper
+
+
+def write_resolved_config(cfg: Config, output: Path) -> Path:
+    """Write the resolved config next to an output file: `<stem>.config.yaml`."""
+    path = output.with_name(output.stem + ".config.yaml")
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(dump_config(cfg), encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="cvslam")
+@click.option("-v", "--verbose", count=True, help="More output (debug messages).")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+def cli(verbose: int, quiet: bool) -> None:
+    """Cooperative stereo visual SLAM from ROS 2 MCAP logs (no ROS install needed)."""
+    _setup_logging(verbose, quiet)
+
+
+# ----------------------------------------------------------------------------- info
+
+
+@cli.command()
+@click.argument("logs", nargs=-1, required=True,
+                type=click.Path(path_type=Path, dir_okay=True))
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@config_options
+def info(logs: tuple[Path, ...], as_json: bool, cfg: Config) -> None:
+    """Summarise LOG... per vehicle: topics, rates, stereo pairs, calibration, problems.
+
+    Exits 1 when a problem that would stop later stages is found (after printing the report).
+    """
+    from cvslam_cli.info import first_error, inspect_logs, render_text
+    from cvslam_cli.io.mcap_source import McapLogSource
+
+    report = inspect_logs([McapLogSource(p) for p in logs], cfg)
+    click.echo(json.dumps(report, indent=2) if as_json else render_text(report))
+    err = first_error(report)
+    if err:
+        raise CvslamError(err)
+
+
+# ----------------------------------------------------------------------------- import
+
+
+@cli.group(name="import")
+def import_() -> None:
+    """Convert a dataset folder (EuRoC, KITTI) into a cvslam MCAP log."""
+
+
+def _import_common(func: Callable[..., Any]) -> Callable[..., Any]:
+    func = click.option("-o", "--output", required=True,
+                        type=click.Path(dir_okay=False, path_type=Path),
+                        help="MCAP file to write.")(func)
+    func = click.option("--vehicle", default="uav1", show_default=True,
+                        help="Vehicle name used in topic names (/<vehicle>/...).")(func)
+    return config_options(func)
+
+
+def _report_import(summary: Any, cfg: Config) -> None:
+    cfg_path = write_resolved_config(cfg, summary.out_path)
+    log.info("wrote %s: vehicle %s, %d stereo pairs, %d IMU samples, %d ground-truth poses, "
+             "%.3f s, baseline %.4f m (config: %s)", summary.out_path, summary.vehicle,
+             summary.stereo_pairs, summary.imu_samples, summary.ground_truth_poses,
+             summary.duration_s, summary.baseline_m, cfg_path)
+    for note in summary.notes:
+        log.warning("%s", note)
+
+
+@import_.command(name="euroc")
+@click.argument("mav0_dir", type=click.Path(path_type=Path))
+@_import_common
+def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, cfg: Config) -> None:
+    """Import an EuRoC MAV (ASL folder layout) MAV0_DIR into an MCAP log."""
+    from cvslam_cli.io.importers.euroc import import_euroc
+
+    _report_import(import_euroc(mav0_dir, output, vehicle,
+                                progress=log.isEnabledFor(logging.INFO)), cfg)
+
+
+@import_.command(name="kitti")
+@click.argument("seq_dir", type=click.Path(path_type=Path))
+@click.option("--rate-hz", default=10.0, show_default=True, type=click.FloatRange(min=0.001),
+              help="Frame rate used when the folder has no times.txt.")
+@_import_common
+def import_kitti_cmd(seq_dir: Path, rate_hz: float, output: Path, vehicle: str,
+                     cfg: Config) -> None:
+    """Import a KITTI odometry sequence folder SEQ_DIR into an MCAP log."""
+    from cvslam_cli.io.importers.kitti import import_kitti
+
+    _report_import(import_kitti(seq_dir, output, vehicle, rate_hz=rate_hz,
+                                progress=log.isEnabledFor(logging.INFO)), cfg)
+
+
+# ----------------------------------------------------------------------------- entry
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Console entry point with the one error boundary."""
+    try:
+        rc = cli.main(args=list(argv) if argv is not None else None, prog_name="cvslam",
+                      standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("cvslam: interrupted", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except CvslamError as exc:
+        click.echo(f"cvslam: error: {exc}", err=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        click.echo("cvslam: interrupted", err=True)
+        sys.exit(130)
+    sys.exit(rc if isinstance(rc, int) else 0)

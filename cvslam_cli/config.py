@@ -1,0 +1,314 @@
+"""Configuration: YAML files loaded into frozen dataclasses, validated at the boundary.
+
+Sources, lowest precedence first: the dataclass defaults (mirrored, with a comment per key,
+in `configs/default.yaml`), then each `--config FILE`, then each `--set key.path=value`.
+Each source is checked on its own so that an error names the file (or the `--set` option)
+and the key path at fault, plus what was expected:
+
+    configs/my.yaml: logs.stereo_pair_tolerance_ms: expected a number >= 0, got -1
+
+Entries of `logs.vehicles` are deep-merged over `logs.vehicle_defaults`, so a vehicle only
+states what differs from the defaults (usually a topic or two).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+from cvslam_cli.errors import ConfigError
+
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
+
+
+def _opt(default: Any, *, lo: float | None = None, hi: float | None = None,
+         lo_open: bool = False) -> Any:
+    """A dataclass field with an optional numeric range (`lo`, `hi`; `lo_open`: lo excluded)."""
+    meta = {"lo": lo, "hi": hi, "lo_open": lo_open}
+    if isinstance(default, (dict, list, tuple)) or dataclasses.is_dataclass(default):
+        return field(default_factory=lambda: copy.deepcopy(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+# --------------------------------------------------------------------------- schema
+
+
+@dataclass(frozen=True)
+class TopicMap:
+    """Topic names of one vehicle; `{vehicle}` is replaced by the vehicle's name."""
+
+    left_image: str = "/{vehicle}/stereo/left/image_raw"
+    right_image: str = "/{vehicle}/stereo/right/image_raw"
+    left_info: str = "/{vehicle}/stereo/left/camera_info"
+    right_info: str = "/{vehicle}/stereo/right/camera_info"
+    imu: str = "/{vehicle}/imu"
+    odom: str = "/{vehicle}/odom"
+    ground_truth: str = "/{vehicle}/ground_truth/pose"
+
+    def resolve(self, vehicle: str) -> TopicMap:
+        return TopicMap(**{k: v.replace("{vehicle}", vehicle)
+                           for k, v in dataclasses.asdict(self).items()})
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Calibration of one camera, used when the log has no CameraInfo for it.
+
+    `T_body_cam` is the 4x4 homogeneous transform (16 numbers, row-major) mapping camera
+    optical-frame coordinates to body coordinates. `fx <= 0` means "not configured".
+    """
+
+    width: int = _opt(0, lo=0)
+    height: int = _opt(0, lo=0)
+    fx: float = 0.0
+    fy: float = 0.0
+    cx: float = 0.0
+    cy: float = 0.0
+    distortion_model: Literal["plumb_bob", "equidistant", "none"] = "none"
+    distortion: tuple[float, ...] = ()
+    T_body_cam: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0,
+                                     0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+    @property
+    def configured(self) -> bool:
+        return self.fx != 0.0
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """Stereo rig of one vehicle: fallback calibration and TF frame names."""
+
+    body_frame: str = "{vehicle}/base_link"
+    left: CameraConfig = _opt(CameraConfig())
+    right: CameraConfig = _opt(CameraConfig())
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    kind: Literal["uav", "ugv"] = "uav"
+    topics: TopicMap = _opt(TopicMap())
+    rig: RigConfig = _opt(RigConfig())
+
+
+@dataclass(frozen=True)
+class LogsConfig:
+    """How logs are read and split into vehicles."""
+
+    vehicles: dict[str, VehicleConfig] = _opt({})
+    vehicle_defaults: VehicleConfig = _opt(VehicleConfig())
+    tf_static_topic: str = "/tf_static"
+    stereo_pair_tolerance_ms: float = _opt(2.0, lo=0.0)
+    reorder_window_ms: float = _opt(100.0, lo=0.0)
+    gap_factor: float = _opt(3.0, lo=1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class Config:
+    logs: LogsConfig = _opt(LogsConfig())
+
+
+# --------------------------------------------------------------------------- building
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if tp is float:
+        return "a number"
+    if tp is int:
+        return "an integer"
+    if tp is bool:
+        return "true or false"
+    if tp is str:
+        return "a string"
+    if origin is tuple:
+        return f"a list of {_type_name(typing.get_args(tp)[0])}s"
+    if origin is dict:
+        return "a mapping"
+    if dataclasses.is_dataclass(tp):
+        return "a mapping"
+    return str(tp)
+
+
+def _fail(source: str, path: str, expected: str, got: Any) -> typing.NoReturn:
+    shown = "nothing" if got is None else repr(got)
+    if len(shown) > 60:
+        shown = shown[:57] + "..."
+    raise ConfigError(f"{source}: {path}: expected {expected}, got {shown}")
+
+
+def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any]) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if raw is None and type(None) in args:
+            return None
+        (inner,) = [a for a in args if a is not type(None)]
+        return _convert(inner, raw, path, source, meta)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(raw, Mapping):
+            _fail(source, path, "a mapping", raw)
+        return _build(tp, raw, path, source)
+    if origin is Literal:
+        if raw not in typing.get_args(tp):
+            _fail(source, path, _type_name(tp), raw)
+        return raw
+    if origin is dict:
+        if not isinstance(raw, Mapping):
+            _fail(source, path, "a mapping", raw)
+        _, val_tp = typing.get_args(tp)
+        return {str(k): _convert(val_tp, v, f"{path}.{k}", source, {}) for k, v in raw.items()}
+    if origin is tuple:
+        if not isinstance(raw, (list, tuple)):
+            _fail(source, path, _type_name(tp), raw)
+        elem = typing.get_args(tp)[0]
+        return tuple(_convert(elem, v, f"{path}[{i}]", source, {}) for i, v in enumerate(raw))
+    if tp is bool:
+        if not isinstance(raw, bool):
+            _fail(source, path, "true or false", raw)
+        return raw
+    if tp is str:
+        if not isinstance(raw, str):
+            _fail(source, path, "a string", raw)
+        return raw
+    if tp in (int, float):
+        lo, hi = meta.get("lo"), meta.get("hi")
+        expected = _type_name(tp)
+        if lo is not None:
+            expected += f" {'>' if meta.get('lo_open') else '>='} {lo}"
+        if hi is not None:
+            expected += f" <= {hi}" if lo is None else f" and <= {hi}"
+        ok = isinstance(raw, int) if tp is int else isinstance(raw, (int, float))
+        if not ok or isinstance(raw, bool) or (tp is float and raw != raw):  # NaN check
+            _fail(source, path, expected, raw)
+        value = tp(raw)
+        if (lo is not None and (value < lo or (meta.get("lo_open") and value == lo))) or (
+                hi is not None and value > hi):
+            _fail(source, path, expected, raw)
+        return value
+    raise TypeError(f"config type {tp!r} at {path} is not supported")  # a bug in the schema
+
+
+def _build(cls: type, raw: Mapping[str, Any], path: str, source: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key in raw:
+        if key not in fields:
+            where = f"{path}.{key}" if path else str(key)
+            raise ConfigError(f"{source}: {where}: unknown key (expected one of: "
+                              f"{', '.join(fields)})")
+    kwargs = {}
+    for name, f in fields.items():
+        if name in raw:
+            sub = f"{path}.{name}" if path else name
+            kwargs[name] = _convert(hints[name], raw[name], sub, source, f.metadata)
+    return cls(**kwargs)
+
+
+def _deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = _deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _expand_vehicles(raw: Mapping[str, Any]) -> dict[str, Any]:
+    """Deep-merge each `logs.vehicles.<name>` over `logs.vehicle_defaults`."""
+    logs = raw.get("logs")
+    if not isinstance(logs, Mapping) or not isinstance(logs.get("vehicles"), Mapping):
+        return dict(raw)
+    defaults = logs.get("vehicle_defaults") or {}
+    if not isinstance(defaults, Mapping):
+        return dict(raw)
+    vehicles = {name: _deep_merge(defaults, v) if isinstance(v, Mapping) else v
+                for name, v in logs["vehicles"].items()}
+    return {**raw, "logs": {**logs, "vehicles": vehicles}}
+
+
+def to_dict(cfg: Any) -> Any:
+    """Plain YAML-ready data (tuples as lists) of a config dataclass."""
+    if dataclasses.is_dataclass(cfg):
+        return {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    if isinstance(cfg, Mapping):
+        return {k: to_dict(v) for k, v in cfg.items()}
+    if isinstance(cfg, (list, tuple)):
+        return [to_dict(v) for v in cfg]
+    return cfg
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """`a.b.c=value` -> (['a','b','c'], value parsed as YAML)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"--set {text}: expected key.path=value")
+    parts = key.strip().split(".")
+    if any(not p for p in parts):
+        raise ConfigError(f"--set {text}: empty component in key path {key!r}")
+    try:
+        parsed = yaml.safe_load(value) if value.strip() else ""
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"--set {text}: value is not valid YAML ({exc.problem})") from None
+    return parts, parsed
+
+
+def _nest(parts: list[str], value: Any) -> dict[str, Any]:
+    out: Any = value
+    for p in reversed(parts):
+        out = {p: out}
+    return out
+
+
+def read_yaml_mapping(path: Path) -> dict[str, Any]:
+    """Read a YAML file that must hold a mapping (or be empty)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read config file ({exc})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}: not valid YAML{where} "
+                          f"({getattr(exc, 'problem', None) or exc})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{path}: expected a mapping of config keys at the top level, "
+                          f"got {type(data).__name__}")
+    return dict(data)
+
+
+def load_config(files: typing.Sequence[Path | str] = (),
+                overrides: typing.Sequence[str] = ()) -> Config:
+    """Build the resolved config from config files and `key.path=value` overrides."""
+    merged: dict[str, Any] = {}
+    sources: list[tuple[str, dict[str, Any]]] = [(str(f), read_yaml_mapping(Path(f)))
+                                                 for f in files]
+    for text in overrides:
+        parts, value = parse_override(text)
+        sources.append((f"--set {text}", _nest(parts, value)))
+    for name, raw in sources:
+        _build(Config, _expand_vehicles(raw), "", name)  # validate alone, so errors name it
+        merged = _deep_merge(merged, raw)
+    merged = _expand_vehicles(merged)
+    return _build(Config, merged, "", "config")
+
+
+def dump_config(cfg: Config) -> str:
+    """The resolved config as YAML text (what is written next to every output)."""
+    return yaml.safe_dump(to_dict(cfg), sort_keys=False)

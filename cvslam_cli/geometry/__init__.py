@@ -1,0 +1,1 @@
+"""Rotations, camera models and stereo rigs (pure numpy)."""

@@ -1,0 +1,89 @@
+"""Rotations: quaternions (x, y, z, w; Hamilton, as ROS and TUM files), matrices, ZYX Euler.
+
+`C_nav_body` is the paper's C^n_b (body -> nav direction cosine matrix); Euler angles are
+(roll φ, pitch θ, yaw ψ) applied as yaw-pitch-roll (ZYX), radians.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+
+def quat_xyzw_to_matrix(q_xyzw: F64) -> F64:
+    """(..., 4) unit quaternions (x, y, z, w) -> (..., 3, 3) rotation matrices."""
+    q = np.asarray(q_xyzw, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    R = np.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    ], axis=-1)
+    return R.reshape((*q.shape[:-1], 3, 3))
+
+
+def matrix_to_quat_xyzw(R: F64) -> F64:
+    """(..., 3, 3) rotation matrices -> (..., 4) quaternions (x, y, z, w) with w >= 0."""
+    R = np.asarray(R, dtype=float)
+    flat = R.reshape(-1, 3, 3)
+    out = np.empty((flat.shape[0], 4))
+    for i, m in enumerate(flat):
+        t = np.trace(m)
+        if t > 0:
+            s = 2.0 * np.sqrt(t + 1.0)
+            q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+        else:
+            k = int(np.argmax(np.diag(m)))
+            a, b = (k + 1) % 3, (k + 2) % 3
+            s = 2.0 * np.sqrt(1.0 + m[k, k] - m[a, a] - m[b, b])
+            q = [0.0, 0.0, 0.0, (m[b, a] - m[a, b]) / s]
+            q[k] = s / 4
+            q[a] = (m[a, k] + m[k, a]) / s
+            q[b] = (m[b, k] + m[k, b]) / s
+        q = np.asarray(q)
+        q /= np.linalg.norm(q)
+        out[i] = -q if q[3] < 0 else q
+    return out.reshape((*R.shape[:-2], 4))
+
+
+def euler_zyx_to_matrix(roll: float, pitch: float, yaw: float) -> F64:
+    """C_nav_body from ZYX Euler angles (paper's C^n_b)."""
+    cr, sr, cp, sp, cy, sy = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch),
+                              np.cos(yaw), np.sin(yaw))
+    return np.array([
+        [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
+        [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
+        [-sp, sr * cp, cr * cp],
+    ])
+
+
+def matrix_to_euler_zyx(C_nav_body: F64) -> F64:
+    """(roll, pitch, yaw) of a body -> nav rotation matrix."""
+    C = np.asarray(C_nav_body, dtype=float)
+    pitch = -np.arcsin(np.clip(C[2, 0], -1.0, 1.0))
+    roll = np.arctan2(C[2, 1], C[2, 2])
+    yaw = np.arctan2(C[1, 0], C[0, 0])
+    return np.array([roll, pitch, yaw])
+
+
+def make_T(R: F64, t: F64) -> F64:
+    """4x4 homogeneous transform from a 3x3 rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def invert_T(T: F64) -> F64:
+    """Inverse of a 4x4 rigid transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def is_rotation(R: F64, tol: float = 1e-6) -> bool:
+    R = np.asarray(R, dtype=float)
+    return bool(R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=tol)
+                and np.linalg.det(R) > 0)

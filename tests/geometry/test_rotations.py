@@ -1,0 +1,45 @@
+from __future__ import annotations
+
+import numpy as np
+
+from cvslam_cli.geometry.rotations import (
+    euler_zyx_to_matrix,
+    invert_T,
+    make_T,
+    matrix_to_euler_zyx,
+    matrix_to_quat_xyzw,
+    quat_xyzw_to_matrix,
+)
+
+
+def test_quaternion_matrix_round_trip():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(200, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 3] < 0] *= -1
+    R = quat_xyzw_to_matrix(q)
+    assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(matrix_to_quat_xyzw(R), q, atol=1e-12)
+
+
+def test_quaternion_convention_is_hamilton_xyzw():
+    # 90 degrees about z maps x to y
+    q = np.array([0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
+    np.testing.assert_allclose(quat_xyzw_to_matrix(q) @ [1, 0, 0], [0, 1, 0], atol=1e-15)
+
+
+def test_euler_zyx_round_trip_and_yaw_meaning():
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        rpy = rng.uniform([-np.pi, -1.5, -np.pi], [np.pi, 1.5, np.pi])
+        C = euler_zyx_to_matrix(*rpy)
+        np.testing.assert_allclose(matrix_to_euler_zyx(C), rpy, atol=1e-12)
+    # yaw 90 degrees: body x (forward) points east (nav y)
+    np.testing.assert_allclose(euler_zyx_to_matrix(0, 0, np.pi / 2) @ [1, 0, 0], [0, 1, 0],
+                               atol=1e-15)
+
+
+def test_transform_inverse():
+    T = make_T(euler_zyx_to_matrix(0.1, -0.2, 0.3), [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(T @ invert_T(T), np.eye(4), atol=1e-15)

@@ -1,0 +1,135 @@
+"""The command line: help everywhere, the error boundary, `cvslam info`."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cvslam_cli import __version__
+from cvslam_cli.cli import cli
+from cvslam_cli.io.mcap_writer import LogWriter, header
+from tests.synth import camera, write_stereo_log
+
+
+def _commands(group, prefix=()):
+    for name, cmd in group.commands.items():
+        yield (*prefix, name)
+        if hasattr(cmd, "commands"):
+            yield from _commands(cmd, (*prefix, name))
+
+
+def test_help_on_every_command_and_version(cvslam):
+    paths = list(_commands(cli))
+    assert ("info",) in paths and ("import", "euroc") in paths and ("import", "kitti") in paths
+    for path in paths:
+        res = cvslam(*path, "--help")
+        assert res.code == 0 and "Usage:" in res.out, path
+    res = cvslam("--version")
+    assert res.code == 0 and __version__ in res.out
+
+
+def test_stage_commands_take_config_and_set(cvslam):
+    for path in [("info",), ("import", "euroc"), ("import", "kitti")]:
+        out = cvslam(*path, "--help").out
+        assert "--config FILE" in out and "--set KEY.PATH=VALUE" in out, path
+
+
+def test_info_reports_vehicle_topics_pairs_and_calibration(cvslam, tmp_path):
+    synth = write_stereo_log(tmp_path / "a.mcap", n_frames=12, drop_right=(5,),
+                             nan_imu=(7,), baseline_m=0.2)
+    res = cvslam("info", synth.path)
+    assert res.code == 0, res.err
+    assert "vehicle uav1" in res.out
+    assert "stereo pairs: 11 (unpaired left 1, right 0" in res.out
+    assert "baseline 0.2000 m" in res.out
+    assert "image 64x48 mono8" in res.out
+    assert "1 message(s) with NaN/inf values dropped" in res.out
+    res = cvslam("info", "--json", synth.path)
+    report = json.loads(res.out)
+    v = report["vehicles"]["uav1"]
+    topics = {t["role"]: t for t in v["topics"]}
+    assert topics["imu"]["rate_hz"] == pytest.approx(200.0)
+    assert topics["left_image"]["rate_hz"] == pytest.approx(20.0)
+    assert topics["left_image"]["count"] == 12 and topics["right_image"]["count"] == 11
+    assert topics["imu"]["dropped_nonfinite"] == 1
+    assert v["stereo"]["pairs"] == 11
+    assert v["calibration"]["left"]["fx"] == 50.0
+    assert v["calibration"]["baseline_m"] == pytest.approx(0.2)
+    assert v["duration_s"] == pytest.approx(0.595, abs=0.01)
+
+
+def test_info_reports_gaps(cvslam, tmp_path):
+    path = tmp_path / "gap.mcap"
+    with LogWriter(path) as log:
+        for k, t in enumerate([0, 10, 20, 30, 100, 110, 120]):
+            log.write_imu("/v/imu", 10**9 + t * 1_000_000, np.zeros(3), np.zeros(3), "v")
+            del k
+    report = json.loads(cvslam("info", "--json", path).out)
+    imu = report["vehicles"]["v"]["topics"][0]
+    assert imu["gaps"] == 1 and imu["largest_gap_s"] == pytest.approx(0.07)
+    assert any("gap" in p["text"] for p in report["problems"])
+
+
+def _write_odd_encoding(path):
+    with LogWriter(path) as log:
+        for side in ("left", "right"):
+            cam = camera(2, 2, 2.0, right=side == "right", frame_id=f"v/{side}")
+            log.write_camera_info(f"/v/stereo/{side}/camera_info", 10**9, cam)
+            log.write(f"/v/stereo/{side}/image_raw", "sensor_msgs/msg/Image", {
+                "header": header(10**9, f"v/{side}"), "height": 2, "width": 2,
+                "encoding": "yuv422", "is_bigendian": 0, "step": 4, "data": bytes(8)}, 10**9)
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("missing", "nope.mcap: file not found"),
+    ("not_mcap", "not an MCAP file"),
+    ("absent_topic", "topic /v9/imu (logs.vehicles.uav1.topics.imu) is not in the log"),
+    ("size", "image is 64x48 but its calibration (CameraInfo /uav1/stereo/left/camera_info "
+             "+ /tf_static) is for 70x48"),
+    ("encoding", "unknown image encoding 'yuv422'"),
+    ("zero_focal", "non-positive focal length"),
+    ("bad_key", "--set logs.nope=1: logs.nope: unknown key"),
+])
+def test_bad_input_is_one_line_and_exit_1(cvslam, tmp_path, case, expected):
+    args: list[object] = ["info"]
+    if case == "missing":
+        args.append(tmp_path / "nope.mcap")
+    elif case == "not_mcap":
+        p = tmp_path / "x.mcap"
+        p.write_text("hello")
+        args.append(p)
+    elif case == "absent_topic":
+        args += [write_stereo_log(tmp_path / "a.mcap").path,
+                 "--set", "logs.vehicles.uav1.topics.imu=/v9/imu"]
+    elif case == "size":
+        args.append(write_stereo_log(tmp_path / "a.mcap", info_size=(70, 48)).path)
+    elif case == "encoding":
+        _write_odd_encoding(tmp_path / "e.mcap")
+        args.append(tmp_path / "e.mcap")
+    elif case == "zero_focal":
+        args.append(write_stereo_log(tmp_path / "a.mcap", fx=0.0).path)
+    elif case == "bad_key":
+        args += [write_stereo_log(tmp_path / "a.mcap").path, "--set", "logs.nope=1"]
+    res = cvslam(*args)
+    assert res.code == 1
+    errors = [ln for ln in res.err.splitlines() if ln.startswith("cvslam: error:")]
+    assert len(errors) == 1 and expected in errors[0], res.err
+    assert "Traceback" not in res.err
+
+
+def test_usage_error_exits_2(cvslam):
+    assert cvslam("info").code == 2
+    assert cvslam("frobnicate").code == 2
+
+
+def test_console_script_error_has_no_traceback(tmp_path):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"\0" * 100)
+    proc = subprocess.run([sys.executable, "-m", "cvslam_cli", "info", str(bad)],
+                          capture_output=True, text=True, check=False)
+    assert proc.returncode == 1
+    assert proc.stderr.strip() == f"cvslam: error: {bad}: not an MCAP file (bad magic bytes)"

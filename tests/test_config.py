@@ -1,0 +1,106 @@
+"""Config loading: defaults file, validation messages, overrides, vehicle merging."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import pytest
+import yaml
+
+from cvslam_cli.config import DEFAULT_CONFIG_PATH, Config, dump_config, load_config, to_dict
+from cvslam_cli.errors import ConfigError
+
+
+def _leaf_paths(d, prefix=""):
+    for k, v in d.items():
+        path = f"{prefix}.{k}" if prefix else k
+        if isinstance(v, dict) and v:
+            yield from _leaf_paths(v, path)
+        else:
+            yield path
+
+
+def test_default_yaml_equals_dataclass_defaults():
+    assert load_config([DEFAULT_CONFIG_PATH]) == Config()
+    on_disk = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    assert sorted(_leaf_paths(on_disk)) == sorted(_leaf_paths(to_dict(Config())))
+
+
+def test_default_yaml_documents_every_key():
+    lines = DEFAULT_CONFIG_PATH.read_text().splitlines()
+    key_re = re.compile(r"^(\s*)([A-Za-z_]+):")
+    for i, line in enumerate(lines):
+        m = key_re.match(line)
+        if not m:
+            continue
+        # a comment on the line before, or the key belongs to a group whose earlier sibling
+        # carries the comment (width/height, fx..cy, the right camera's keys)
+        window = lines[max(0, i - 10):i]
+        assert any(w.strip().startswith("#") for w in window), f"undocumented: {line}"
+
+
+def test_resolved_config_round_trips_through_yaml(tmp_path):
+    cfg = load_config(overrides=["logs.stereo_pair_tolerance_ms=4.5",
+                                 "logs.vehicles.tb3.kind=ugv"])
+    path = tmp_path / "resolved.yaml"
+    path.write_text(dump_config(cfg))
+    assert load_config([path]) == cfg
+
+
+def test_vehicle_entries_merge_over_defaults(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("logs:\n  vehicle_defaults:\n    topics:\n      imu: /{vehicle}/imu0\n"
+                 "  vehicles:\n    a: {kind: ugv}\n    b: {topics: {odom: /wheels}}\n")
+    cfg = load_config([f])
+    assert cfg.logs.vehicles["a"].kind == "ugv"
+    assert cfg.logs.vehicles["a"].topics.imu == "/{vehicle}/imu0"
+    assert cfg.logs.vehicles["b"].topics.odom == "/wheels"
+    assert cfg.logs.vehicles["b"].topics.imu == "/{vehicle}/imu0"
+    assert dataclasses.is_dataclass(cfg.logs.vehicles["b"])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.logs.gap_factor = 2.0  # type: ignore[misc]
+
+
+def test_later_sources_override_earlier(tmp_path):
+    a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    a.write_text("logs: {gap_factor: 4.0, reorder_window_ms: 10}\n")
+    b.write_text("logs: {gap_factor: 5.0}\n")
+    cfg = load_config([a, b], ["logs.reorder_window_ms=20"])
+    assert (cfg.logs.gap_factor, cfg.logs.reorder_window_ms) == (5.0, 20.0)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("logs: {colour: red}\n", "c.yaml: logs.colour: unknown key"),
+    ("logs: {gap_factor: fast}\n", "c.yaml: logs.gap_factor: expected a number > 1.0, got 'fast'"),
+    ("logs: {gap_factor: 0.5}\n", "c.yaml: logs.gap_factor: expected a number > 1.0, got 0.5"),
+    ("logs: {stereo_pair_tolerance_ms: -1}\n",
+     "c.yaml: logs.stereo_pair_tolerance_ms: expected a number >= 0.0, got -1"),
+    ("logs: {vehicles: {a: {kind: boat}}}\n",
+     "c.yaml: logs.vehicles.a.kind: expected one of 'uav', 'ugv', got 'boat'"),
+    ("logs: {vehicles: {a: {rig: {left: {width: 1.5}}}}}\n",
+     "c.yaml: logs.vehicles.a.rig.left.width: expected an integer >= 0, got 1.5"),
+    ("logs: {vehicle_defaults: {rig: {left: {distortion: [1, x]}}}}\n",
+     "c.yaml: logs.vehicle_defaults.rig.left.distortion[1]: expected a number, got 'x'"),
+    ("logs: {tf_static_topic: true}\n", "c.yaml: logs.tf_static_topic: expected a string"),
+    ("- just\n- a list\n", "c.yaml: expected a mapping of config keys at the top level"),
+    ("logs: {a: [1, 2\n", "c.yaml: not valid YAML"),
+])
+def test_bad_config_file_gives_one_line_naming_file_and_key(tmp_path, text, message):
+    f = tmp_path / "c.yaml"
+    f.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_config([f])
+    assert message in str(exc.value)
+    assert "\n" not in str(exc.value)
+
+
+def test_bad_overrides_name_the_option():
+    with pytest.raises(ConfigError, match=r"^--set logs.gap_factor=x: logs.gap_factor: expected"):
+        load_config(overrides=["logs.gap_factor=x"])
+    with pytest.raises(ConfigError, match=r"expected key\.path=value"):
+        load_config(overrides=["logs.gap_factor"])
+    with pytest.raises(ConfigError, match="unknown key"):
+        load_config(overrides=["nothing.here=1"])
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(["/no/such/file.yaml"])
