@@ -1,0 +1,123 @@
+"""`make bench`: log decoding throughput and memory against baselines run in the same process.
+
+- Throughput: 752x480 mono8 stereo images decoded into records by `LogSet.records()`
+  (MCAP chunk decompression + CDR decoding + pairing + reordering) vs the bare `mcap` reader
+  iterating the same messages without decoding them (the floor any reader pays).
+  Target: >= 500 images/s.
+- Memory: peak RSS of a process reading a short log vs one reading a 10x longer log, each
+  measured after importing everything (the baseline is an empty read). Must stay flat.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from cvslam_cli.config import load_config
+from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.mcap_writer import LogWriter
+from cvslam_cli.io.records import StereoFrame
+from tests.synth import camera
+
+W, H = 752, 480
+
+
+def write_log(path: Path, n_pairs: int, seed: int = 0) -> Path:
+    """A EuRoC-sized stereo log: blurred texture + per-frame sensor noise, 20 Hz, 200 Hz IMU."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (2 * H, 2 * W), np.uint8), (0, 0), 1.5)
+    cams = {s: camera(W, H, 458.0, right=s == "right", baseline_m=0.11,
+                      frame_id=f"uav1/{s}_camera_optical") for s in ("left", "right")}
+    with LogWriter(path) as log:
+        for i in range(n_pairs):
+            stamp = 10**9 + i * 50_000_000
+            for j in range(10):
+                log.write_imu("/uav1/imu", stamp + j * 5_000_000, rng.normal(size=3),
+                              rng.normal(size=3), "uav1/base_link")
+            for side, cam in cams.items():
+                x, y = (7 * i + (5 if side == "right" else 0)) % W, (3 * i) % H
+                img = texture[y:y + H, x:x + W].astype(np.int16)
+                img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+                log.write_image(f"/uav1/stereo/{side}/image_raw", stamp, img, cam.frame_id)
+                log.write_camera_info(f"/uav1/stereo/{side}/camera_info", stamp, cam)
+    return path
+
+
+@pytest.fixture(scope="module")
+def logs_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("bench")
+    write_log(d / "short.mcap", 60)
+    write_log(d / "long.mcap", 600, seed=1)
+    return d
+
+
+def _best_of(fn, repeats: int = 3) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def test_decode_throughput(logs_dir: Path) -> None:
+    path = logs_dir / "short.mcap"
+    cfg = load_config().logs
+    topics = ["/uav1/stereo/left/image_raw", "/uav1/stereo/right/image_raw"]
+
+    def cvslam_read() -> int:
+        logs = LogSet([McapLogSource(path)], cfg)
+        return sum(2 for r in logs.records() if isinstance(r, StereoFrame))
+
+    def bare_read() -> int:
+        with path.open("rb") as f:
+            return sum(1 for _ in make_reader(f).iter_messages(topics=topics))
+
+    n_images = cvslam_read()
+    assert n_images == bare_read() == 120
+    t_ours, t_bare = _best_of(cvslam_read), _best_of(bare_read)
+    ours, bare = n_images / t_ours, n_images / t_bare
+    print(f"\n[bench] decode 752x480 mono8: cvslam {ours:8.0f} images/s | bare mcap iteration "
+          f"(no decoding) {bare:8.0f} images/s | ratio {ours / bare:.2f} | target >= 500")
+    assert ours >= 500
+
+
+_PEAK = textwrap.dedent("""
+    import resource, sys
+    from cvslam_cli.config import load_config
+    from cvslam_cli.io.logs import LogSet
+    from cvslam_cli.io.mcap_source import McapLogSource
+    logs = LogSet([McapLogSource(sys.argv[1])], load_config().logs)
+    n = 0
+    if sys.argv[2] == "read":
+        n = sum(1 for _ in logs.records())
+    print(n, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+""")
+
+
+def _peak_kib(path: Path, mode: str) -> tuple[int, int]:
+    out = subprocess.run([sys.executable, "-c", _PEAK, str(path), mode], check=True,
+                         capture_output=True, text=True).stdout.split()
+    return int(out[0]), int(out[1])
+
+
+def test_peak_memory_flat_with_log_length(logs_dir: Path) -> None:
+    _, base = _peak_kib(logs_dir / "short.mcap", "open")
+    n_short, short = _peak_kib(logs_dir / "short.mcap", "read")
+    n_long, long_ = _peak_kib(logs_dir / "long.mcap", "read")
+    size_ratio = (logs_dir / "long.mcap").stat().st_size / (logs_dir / "short.mcap").stat().st_size
+    print(f"\n[bench] peak RSS: open only {base / 1024:.0f} MiB | short log ({n_short} records) "
+          f"{short / 1024:.0f} MiB | 10x log ({n_long} records, {size_ratio:.1f}x bytes) "
+          f"{long_ / 1024:.0f} MiB | long/short {long_ / short:.2f} | reading adds "
+          f"{(short - base) / 1024:.0f} vs {(long_ - base) / 1024:.0f} MiB")
+    assert n_long > 9 * n_short
+    assert long_ / short < 1.15
