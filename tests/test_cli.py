@@ -133,3 +133,34 @@ def test_console_script_error_has_no_traceback(tmp_path):
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 1
     assert proc.stderr.strip() == f"cvslam: error: {bad}: not an MCAP file (bad magic bytes)"
+
+
+def test_truncated_log_warns_and_reports_readable_prefix(cvslam, tmp_path):
+    synth = write_stereo_log(tmp_path / "full.mcap", n_frames=30, size=(160, 120),
+                             chunk_size=64 * 1024)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(synth.path.read_bytes()[: synth.path.stat().st_size // 2])
+    res = cvslam("info", "--json", cut)
+    assert res.code == 0, res.err
+    warnings = [ln for ln in res.err.splitlines() if ln.startswith("cvslam: warning:")]
+    assert any("truncated" in w and "lost the last" in w for w in warnings)
+    report = json.loads(res.out)
+    assert 5 < report["vehicles"]["uav1"]["stereo"]["pairs"] < 30
+    assert any("truncated" in p["text"] for p in report["problems"])
+
+
+def test_backwards_stamps_and_nan_are_reported_not_fatal(cvslam, tmp_path):
+    synth = write_stereo_log(tmp_path / "a.mcap", backwards_imu_at=30, nan_imu=(2,))
+    res = cvslam("info", synth.path)
+    assert res.code == 0
+    assert "/uav1/imu: timestamps go backwards 1 time(s)" in res.out
+    assert "/uav1/imu: 1 message(s) with NaN/inf values dropped" in res.out
+
+
+def test_zero_baseline_is_fatal(cvslam, tmp_path):
+    synth = write_stereo_log(tmp_path / "a.mcap", camera_info=False, tf=False)
+    cam = "{width: 64, height: 48, fx: 50, fy: 50, cx: 32, cy: 24}"
+    res = cvslam("info", synth.path, "--set", f"logs.vehicles.uav1.rig.left={cam}",
+                 "--set", f"logs.vehicles.uav1.rig.right={cam}")
+    assert res.code == 1
+    assert "zero stereo baseline" in res.err.splitlines()[-1]

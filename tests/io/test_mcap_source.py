@@ -162,3 +162,38 @@ def test_truncated_mid_chunk_reads_prefix_with_warning(tmp_path):
         np.testing.assert_array_equal(f.left.image, img)
     assert any("truncated" in w and "lost the last" in w for w in src.warnings)
     assert any("truncated" in p.text for p in logs.problems)
+
+
+def test_ros1_bag_converted_with_rosbags_reads(tmp_path):
+    """The README's ROS 1 path: rosbags-convert to a ROS 2 MCAP, then read it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from rosbags.rosbag1 import Writer as Ros1Writer
+
+    ts1 = get_typestore(Stores.ROS1_NOETIC)
+    Imu, Header = ts1.types["sensor_msgs/msg/Imu"], ts1.types["std_msgs/msg/Header"]
+    Time, V3 = ts1.types["builtin_interfaces/msg/Time"], ts1.types["geometry_msgs/msg/Vector3"]
+    Quat = ts1.types["geometry_msgs/msg/Quaternion"]
+    with Ros1Writer(tmp_path / "in.bag") as w:
+        conn = w.add_connection("/r/imu", Imu.__msgtype__, typestore=ts1)
+        for i in range(20):
+            t = 10**9 + i * 5_000_000
+            msg = Imu(header=Header(seq=i, stamp=Time(sec=t // 10**9, nanosec=t % 10**9),
+                                    frame_id="r"),
+                      orientation=Quat(x=0, y=0, z=0, w=1), orientation_covariance=np.zeros(9),
+                      angular_velocity=V3(x=0.01 * i, y=0, z=0),
+                      angular_velocity_covariance=np.zeros(9),
+                      linear_acceleration=V3(x=0, y=0, z=9.81),
+                      linear_acceleration_covariance=np.zeros(9))
+            w.write(conn, t, ts1.serialize_ros1(msg, Imu.__msgtype__))
+    convert = Path(sys.executable).with_name("rosbags-convert")
+    subprocess.run([str(convert), "--src", str(tmp_path / "in.bag"), "--dst",
+                    str(tmp_path / "out"), "--dst-storage", "mcap"], check=True,
+                   capture_output=True)
+    (mcap_file,) = (tmp_path / "out").glob("*.mcap")
+    logs = LogSet([McapLogSource(mcap_file)], load_config().logs)
+    imu = list(logs.records())
+    assert [s.stamp_ns for s in imu] == [10**9 + i * 5_000_000 for i in range(20)]
+    assert imu[7].gyro_rad_s[0] == pytest.approx(0.07)
