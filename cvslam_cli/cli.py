@@ -43,15 +43,25 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Add `--config FILE` (repeatable) and `--set key.path=value` (repeatable); the
     command receives the resolved `cfg: Config`."""
 
-    @click.option("--config", "config_files", multiple=True, metavar="FILE",
-                  type=click.Path(dir_okay=False, path_type=Path),
-                  help="YAML config file (repeatable; later files override earlier ones).")
-    @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
-                  help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 "
-                       "(repeatable).")
+    @click.option(
+        "--config",
+        "config_files",
+        multiple=True,
+        metavar="FILE",
+        type=click.Path(dir_okay=False, path_type=Path),
+        help="YAML config file (repeatable; later files override earlier ones).",
+    )
+    @click.option(
+        "--set",
+        "overrides",
+        multiple=True,
+        metavar="KEY.PATH=VALUE",
+        help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 (repeatable).",
+    )
     @functools.wraps(func)
-    def wrapper(*args: Any, config_files: Sequence[Path], overrides: Sequence[str],
-                **kwargs: Any) -> Any:
+    def wrapper(
+        *args: Any, config_files: Sequence[Path], overrides: Sequence[str], **kwargs: Any
+    ) -> Any:
         cfg = load_config(config_files, overrides)
         return func(*args, cfg=cfg, **kwargs)
 
@@ -80,8 +90,7 @@ def cli(verbose: int, quiet: bool) -> None:
 
 
 @cli.command()
-@click.argument("logs", nargs=-1, required=True,
-                type=click.Path(path_type=Path, dir_okay=True))
+@click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path, dir_okay=True))
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @config_options
 def info(logs: tuple[Path, ...], as_json: bool, cfg: Config) -> None:
@@ -108,22 +117,38 @@ def import_() -> None:
 
 
 def _import_common(func: Callable[..., Any]) -> Callable[..., Any]:
-    func = click.option("-o", "--output", required=True,
-                        type=click.Path(dir_okay=False, path_type=Path),
-                        help="MCAP file to write.")(func)
-    func = click.option("--vehicle", default="uav1", show_default=True,
-                        help="Vehicle name used in topic names (/<vehicle>/...).")(func)
+    func = click.option(
+        "-o",
+        "--output",
+        required=True,
+        type=click.Path(dir_okay=False, path_type=Path),
+        help="MCAP file to write.",
+    )(func)
+    func = click.option(
+        "--vehicle",
+        default="uav1",
+        show_default=True,
+        help="Vehicle name used in topic names (/<vehicle>/...).",
+    )(func)
     return config_options(func)
 
 
 def _report_import(summary: Any, cfg: Config) -> None:
     cfg_path = write_resolved_config(cfg, summary.out_path)
-    log.info("wrote %s: vehicle %s, %d stereo pairs, %d IMU samples, %d ground-truth poses, "
-             "%.3f s, baseline %.4f m (config: %s)", summary.out_path, summary.vehicle,
-             summary.stereo_pairs, summary.imu_samples, summary.ground_truth_poses,
-             summary.duration_s, summary.baseline_m, cfg_path)
+    log.info(
+        "wrote %s: vehicle %s, %d stereo pairs, %d IMU samples, %d ground-truth poses, "
+        "%.3f s, baseline %.4f m (config: %s)",
+        summary.out_path,
+        summary.vehicle,
+        summary.stereo_pairs,
+        summary.imu_samples,
+        summary.ground_truth_poses,
+        summary.duration_s,
+        summary.baseline_m,
+        cfg_path,
+    )
     for note in summary.notes:
-        log.warning("%s", note)
+        log.info("note: %s", note)
 
 
 @import_.command(name="euroc")
@@ -133,22 +158,33 @@ def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, cfg: Config) ->
     """Import an EuRoC MAV (ASL folder layout) MAV0_DIR into an MCAP log."""
     from cvslam_cli.io.importers.euroc import import_euroc
 
-    _report_import(import_euroc(mav0_dir, output, vehicle,
-                                progress=log.isEnabledFor(logging.INFO)), cfg)
+    _report_import(
+        import_euroc(mav0_dir, output, vehicle, progress=log.isEnabledFor(logging.INFO)), cfg
+    )
 
 
 @import_.command(name="kitti")
 @click.argument("seq_dir", type=click.Path(path_type=Path))
-@click.option("--rate-hz", default=10.0, show_default=True, type=click.FloatRange(min=0.001),
-              help="Frame rate used when the folder has no times.txt.")
+@click.option(
+    "--rate-hz",
+    default=10.0,
+    show_default=True,
+    type=click.FloatRange(min=0.001),
+    help="Frame rate used when the folder has no times.txt.",
+)
 @_import_common
-def import_kitti_cmd(seq_dir: Path, rate_hz: float, output: Path, vehicle: str,
-                     cfg: Config) -> None:
+def import_kitti_cmd(
+    seq_dir: Path, rate_hz: float, output: Path, vehicle: str, cfg: Config
+) -> None:
     """Import a KITTI odometry sequence folder SEQ_DIR into an MCAP log."""
     from cvslam_cli.io.importers.kitti import import_kitti
 
-    _report_import(import_kitti(seq_dir, output, vehicle, rate_hz=rate_hz,
-                                progress=log.isEnabledFor(logging.INFO)), cfg)
+    _report_import(
+        import_kitti(
+            seq_dir, output, vehicle, rate_hz=rate_hz, progress=log.isEnabledFor(logging.INFO)
+        ),
+        cfg,
+    )
 
 
 # ----------------------------------------------------------------------------- entry
@@ -157,8 +193,9 @@ def import_kitti_cmd(seq_dir: Path, rate_hz: float, output: Path, vehicle: str,
 def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point with the one error boundary."""
     try:
-        rc = cli.main(args=list(argv) if argv is not None else None, prog_name="cvslam",
-                      standalone_mode=False)
+        rc = cli.main(
+            args=list(argv) if argv is not None else None, prog_name="cvslam", standalone_mode=False
+        )
     except click.exceptions.Abort:
         click.echo("cvslam: interrupted", err=True)
         sys.exit(130)

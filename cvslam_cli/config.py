@@ -29,8 +29,9 @@ from cvslam_cli.errors import ConfigError
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
 
 
-def _opt(default: Any, *, lo: float | None = None, hi: float | None = None,
-         lo_open: bool = False) -> Any:
+def _opt(
+    default: Any, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False
+) -> Any:
     """A dataclass field with an optional numeric range (`lo`, `hi`; `lo_open`: lo excluded)."""
     meta = {"lo": lo, "hi": hi, "lo_open": lo_open}
     if isinstance(default, (dict, list, tuple)) or dataclasses.is_dataclass(default):
@@ -54,8 +55,9 @@ class TopicMap:
     ground_truth: str = "/{vehicle}/ground_truth/pose"
 
     def resolve(self, vehicle: str) -> TopicMap:
-        return TopicMap(**{k: v.replace("{vehicle}", vehicle)
-                           for k, v in dataclasses.asdict(self).items()})
+        return TopicMap(
+            **{k: v.replace("{vehicle}", vehicle) for k, v in dataclasses.asdict(self).items()}
+        )
 
 
 @dataclass(frozen=True)
@@ -74,8 +76,24 @@ class CameraConfig:
     cy: float = 0.0
     distortion_model: Literal["plumb_bob", "equidistant", "none"] = "none"
     distortion: tuple[float, ...] = ()
-    T_body_cam: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0,
-                                     0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    T_body_cam: tuple[float, ...] = (
+        1.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+    )
 
     @property
     def configured(self) -> bool:
@@ -192,7 +210,8 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
             _fail(source, path, expected, raw)
         value = tp(raw)
         if (lo is not None and (value < lo or (meta.get("lo_open") and value == lo))) or (
-                hi is not None and value > hi):
+            hi is not None and value > hi
+        ):
             _fail(source, path, expected, raw)
         return value
     raise TypeError(f"config type {tp!r} at {path} is not supported")  # a bug in the schema
@@ -204,8 +223,9 @@ def _build(cls: type, raw: Mapping[str, Any], path: str, source: str) -> Any:
     for key in raw:
         if key not in fields:
             where = f"{path}.{key}" if path else str(key)
-            raise ConfigError(f"{source}: {where}: unknown key (expected one of: "
-                              f"{', '.join(fields)})")
+            raise ConfigError(
+                f"{source}: {where}: unknown key (expected one of: {', '.join(fields)})"
+            )
     kwargs = {}
     for name, f in fields.items():
         if name in raw:
@@ -232,8 +252,10 @@ def _expand_vehicles(raw: Mapping[str, Any]) -> dict[str, Any]:
     defaults = logs.get("vehicle_defaults") or {}
     if not isinstance(defaults, Mapping):
         return dict(raw)
-    vehicles = {name: _deep_merge(defaults, v) if isinstance(v, Mapping) else v
-                for name, v in logs["vehicles"].items()}
+    vehicles = {
+        name: _deep_merge(defaults, v) if isinstance(v, Mapping) else v
+        for name, v in logs["vehicles"].items()
+    }
     return {**raw, "logs": {**logs, "vehicles": vehicles}}
 
 
@@ -283,22 +305,26 @@ def read_yaml_mapping(path: Path) -> dict[str, Any]:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}: not valid YAML{where} "
-                          f"({getattr(exc, 'problem', None) or exc})") from None
+        raise ConfigError(
+            f"{path}: not valid YAML{where} ({getattr(exc, 'problem', None) or exc})"
+        ) from None
     if data is None:
         return {}
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{path}: expected a mapping of config keys at the top level, "
-                          f"got {type(data).__name__}")
+        raise ConfigError(
+            f"{path}: expected a mapping of config keys at the top level, got {type(data).__name__}"
+        )
     return dict(data)
 
 
-def load_config(files: typing.Sequence[Path | str] = (),
-                overrides: typing.Sequence[str] = ()) -> Config:
+def load_config(
+    files: typing.Sequence[Path | str] = (), overrides: typing.Sequence[str] = ()
+) -> Config:
     """Build the resolved config from config files and `key.path=value` overrides."""
     merged: dict[str, Any] = {}
-    sources: list[tuple[str, dict[str, Any]]] = [(str(f), read_yaml_mapping(Path(f)))
-                                                 for f in files]
+    sources: list[tuple[str, dict[str, Any]]] = [
+        (str(f), read_yaml_mapping(Path(f))) for f in files
+    ]
     for text in overrides:
         parts, value = parse_override(text)
         sources.append((f"--set {text}", _nest(parts, value)))

@@ -36,46 +36,71 @@ def inspect_logs(sources: list[LogSource], cfg: Config) -> dict[str, Any]:
             topic = v.topic(role)
             ts = vs.topics.get(topic)
             info = logs.topic_infos[topic]
-            entry: dict[str, Any] = {"topic": topic, "role": role, "type": info.schema_name,
-                                     "count": ts.count if ts else 0}
+            entry: dict[str, Any] = {
+                "topic": topic,
+                "role": role,
+                "type": info.schema_name,
+                "count": ts.count if ts else 0,
+            }
             if ts is not None and ts.count:
                 gaps = ts.gaps(cfg.logs.gap_factor)
-                entry.update({
-                    "rate_hz": round(ts.rate_hz, 3),
-                    "first_ns": ts.first_ns, "last_ns": ts.last_ns,
-                    "span_s": round(ts.span_s, 6),
-                    "gaps": len(gaps), "largest_gap_s": round(max(gaps), 6) if gaps else 0.0,
-                    "backwards": ts.backwards,
-                    "dropped_nonfinite": ts.dropped_nonfinite,
-                })
+                entry.update(
+                    {
+                        "rate_hz": round(ts.rate_hz, 3),
+                        "first_ns": ts.first_ns,
+                        "last_ns": ts.last_ns,
+                        "span_s": round(ts.span_s, 6),
+                        "gaps": len(gaps),
+                        "largest_gap_s": round(max(gaps), 6) if gaps else 0.0,
+                        "backwards": ts.backwards,
+                        "dropped_nonfinite": ts.dropped_nonfinite,
+                    }
+                )
                 if ts.image_size is not None:
-                    entry["image"] = {"width": ts.image_size[0], "height": ts.image_size[1],
-                                      "encoding": ts.encoding}
+                    entry["image"] = {
+                        "width": ts.image_size[0],
+                        "height": ts.image_size[1],
+                        "encoding": ts.encoding,
+                    }
                 if gaps:
-                    logs.problems.append(_warning(
-                        f"{topic}: {len(gaps)} gap(s) longer than {cfg.logs.gap_factor:g} "
-                        f"nominal periods (largest {max(gaps):.3f} s)"))
+                    logs.problems.append(
+                        _warning(
+                            f"{topic}: {len(gaps)} gap(s) longer than {cfg.logs.gap_factor:g} "
+                            f"nominal periods (largest {max(gaps):.3f} s)"
+                        )
+                    )
                 if ts.dropped_nonfinite:
-                    logs.problems.append(_warning(
-                        f"{topic}: {ts.dropped_nonfinite} message(s) with NaN/inf values "
-                        "dropped"))
+                    logs.problems.append(
+                        _warning(
+                            f"{topic}: {ts.dropped_nonfinite} message(s) with NaN/inf values "
+                            "dropped"
+                        )
+                    )
                 if ts.backwards:
-                    logs.problems.append(_warning(
-                        f"{topic}: timestamps go backwards {ts.backwards} time(s)"))
+                    logs.problems.append(
+                        _warning(f"{topic}: timestamps go backwards {ts.backwards} time(s)")
+                    )
             topics.append(entry)
         firsts = [t["first_ns"] for t in topics if t.get("first_ns") is not None]
         lasts = [t["last_ns"] for t in topics if t.get("last_ns") is not None]
-        stereo = {"pairs": vs.stereo_pairs, "unpaired_left": vs.unpaired_left,
-                  "unpaired_right": vs.unpaired_right,
-                  "max_pair_offset_ms": round(vs.max_pair_offset_ns * 1e-6, 6),
-                  "tolerance_ms": cfg.logs.stereo_pair_tolerance_ms}
+        stereo = {
+            "pairs": vs.stereo_pairs,
+            "unpaired_left": vs.unpaired_left,
+            "unpaired_right": vs.unpaired_right,
+            "max_pair_offset_ms": round(vs.max_pair_offset_ns * 1e-6, 6),
+            "tolerance_ms": cfg.logs.stereo_pair_tolerance_ms,
+        }
         if v.has_stereo and (vs.unpaired_left or vs.unpaired_right):
-            logs.problems.append(_warning(
-                f"vehicle {name}: {vs.unpaired_left} left and {vs.unpaired_right} right images "
-                f"without a partner within {cfg.logs.stereo_pair_tolerance_ms:g} ms"))
+            logs.problems.append(
+                _warning(
+                    f"vehicle {name}: {vs.unpaired_left} left and {vs.unpaired_right} right images "
+                    f"without a partner within {cfg.logs.stereo_pair_tolerance_ms:g} ms"
+                )
+            )
         if not v.has_stereo and ("left_image" in v.present or "right_image" in v.present):
-            logs.problems.append(_warning(f"vehicle {name}: only one camera's images; no "
-                                          "stereo pairs"))
+            logs.problems.append(
+                _warning(f"vehicle {name}: only one camera's images; no stereo pairs")
+            )
         vehicles[name] = {
             "kind": v.config.kind,
             "start_ns": min(firsts) if firsts else None,
@@ -88,8 +113,10 @@ def inspect_logs(sources: list[LogSource], cfg: Config) -> dict[str, Any]:
     return {
         "logs": [_describe_source(s) for s in sources],
         "vehicles": vehicles,
-        "other_topics": [{"topic": i.topic, "type": i.schema_name, "count": i.message_count}
-                         for i in logs.unassigned_topics()],
+        "other_topics": [
+            {"topic": i.topic, "type": i.schema_name, "count": i.message_count}
+            for i in logs.unassigned_topics()
+        ],
         "problems": [{"severity": p.severity, "text": p.text} for p in _unique(logs.problems)],
     }
 
@@ -133,43 +160,60 @@ def render_text(report: dict[str, Any]) -> str:
         lines.append(f"log {lg['path']}" + (f"  ({size / 1e6:.1f} MB)" if size else ""))
         for name, md in lg.get("metadata", {}).items():
             if "nav_frame" in md or "dataset" in md:
-                lines.append(f"  metadata {name}: " + ", ".join(
-                    f"{k}={v}" for k, v in md.items() if k in ("dataset", "vehicle",
-                                                               "nav_frame")))
+                lines.append(
+                    f"  metadata {name}: "
+                    + ", ".join(
+                        f"{k}={v}"
+                        for k, v in md.items()
+                        if k in ("dataset", "vehicle", "nav_frame")
+                    )
+                )
     if not report["vehicles"]:
-        lines.append("no vehicles found (no topic matches the vehicle topic map; see "
-                     "logs.vehicles in the config)")
+        lines.append(
+            "no vehicles found (no topic matches the vehicle topic map; see "
+            "logs.vehicles in the config)"
+        )
     for name, v in report["vehicles"].items():
         lines.append("")
         lines.append(f"vehicle {name} ({v['kind']}): {v['duration_s']:.3f} s")
-        lines.append(f"  {'topic':44s} {'type':32s} {'count':>7s} {'rate Hz':>9s} "
-                     f"{'span s':>9s} {'gaps':>5s}")
+        lines.append(
+            f"  {'topic':44s} {'type':32s} {'count':>7s} {'rate Hz':>9s} "
+            f"{'span s':>9s} {'gaps':>5s}"
+        )
         for t in v["topics"]:
             rate = f"{t['rate_hz']:.2f}" if "rate_hz" in t else "-"
             span = f"{t['span_s']:.3f}" if "span_s" in t else "-"
-            lines.append(f"  {t['topic']:44s} {t['type']:32s} {t['count']:7d} {rate:>9s} "
-                         f"{span:>9s} {t.get('gaps', 0):5d}")
+            lines.append(
+                f"  {t['topic']:44s} {t['type']:32s} {t['count']:7d} {rate:>9s} "
+                f"{span:>9s} {t.get('gaps', 0):5d}"
+            )
             if "image" in t:
                 im = t["image"]
                 lines.append(f"      image {im['width']}x{im['height']} {im['encoding']}")
         s = v["stereo"]
-        lines.append(f"  stereo pairs: {s['pairs']} (unpaired left {s['unpaired_left']}, right "
-                     f"{s['unpaired_right']}; max offset {s['max_pair_offset_ms']:.3f} ms, "
-                     f"tolerance {s['tolerance_ms']:g} ms)")
+        lines.append(
+            f"  stereo pairs: {s['pairs']} (unpaired left {s['unpaired_left']}, right "
+            f"{s['unpaired_right']}; max offset {s['max_pair_offset_ms']:.3f} ms, "
+            f"tolerance {s['tolerance_ms']:g} ms)"
+        )
         cal = v["calibration"]
         if cal is None:
             lines.append("  calibration: none (no stereo images)")
         elif "error" in cal:
             lines.append(f"  calibration: ERROR {cal['error']}")
         else:
-            lines.append(f"  calibration: baseline {cal['baseline_m']:.4f} m, "
-                         f"{'rectified' if cal['rectified'] else 'not rectified'}")
+            lines.append(
+                f"  calibration: baseline {cal['baseline_m']:.4f} m, "
+                f"{'rectified' if cal['rectified'] else 'not rectified'}"
+            )
             for side in ("left", "right"):
                 c = cal[side]
                 d = ", ".join(f"{x:.6g}" for x in c["D"]) or "none"
-                lines.append(f"    {side:5s} {c['width']}x{c['height']} fx={c['fx']:.3f} "
-                             f"fy={c['fy']:.3f} cx={c['cx']:.3f} cy={c['cy']:.3f} "
-                             f"{c['distortion_model']} [{d}]  from {c['source']}")
+                lines.append(
+                    f"    {side:5s} {c['width']}x{c['height']} fx={c['fx']:.3f} "
+                    f"fy={c['fy']:.3f} cx={c['cx']:.3f} cy={c['cy']:.3f} "
+                    f"{c['distortion_model']} [{d}]  from {c['source']}"
+                )
     if report["other_topics"]:
         lines.append("")
         lines.append("topics not assigned to a vehicle:")

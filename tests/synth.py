@@ -25,24 +25,52 @@ class SynthLog:
     gt: list[tuple[int, np.ndarray]] = field(default_factory=list)
 
 
-def camera(width: int = 64, height: int = 48, fx: float = 50.0, *, right: bool = False,
-           baseline_m: float = 0.1, frame_id: str = "") -> CameraModel:
+def camera(
+    width: int = 64,
+    height: int = 48,
+    fx: float = 50.0,
+    *,
+    right: bool = False,
+    baseline_m: float = 0.1,
+    frame_id: str = "",
+) -> CameraModel:
     K = np.array([[fx, 0, width / 2], [0, fx, height / 2], [0, 0, 1.0]])
     P = np.hstack([K, np.array([[-fx * baseline_m if right else 0.0], [0.0], [0.0]])])
     T_body_left = make_T(R_BODY_CAM, np.zeros(3))
     T = T_body_left @ translation_T(baseline_m) if right else T_body_left
-    return CameraModel(width=width, height=height, K=K, D=np.zeros(5),
-                       distortion_model="plumb_bob", P=P, T_body_cam=T, frame_id=frame_id)
+    return CameraModel(
+        width=width,
+        height=height,
+        K=K,
+        D=np.zeros(5),
+        distortion_model="plumb_bob",
+        P=P,
+        T_body_cam=T,
+        frame_id=frame_id,
+    )
 
 
-def write_stereo_log(path: Path, *, vehicle: str = "uav1", n_frames: int = 10,
-                     rate_hz: float = 20.0, size: tuple[int, int] = (64, 48),
-                     imu_rate_hz: float = 200.0, camera_info: bool = True, tf: bool = True,
-                     baseline_m: float = 0.1, right_offset_ns: int = 0,
-                     drop_right: tuple[int, ...] = (), nan_imu: tuple[int, ...] = (),
-                     backwards_imu_at: int | None = None, info_size: tuple[int, int] | None = None,
-                     fx: float = 50.0, t0_ns: int = 1_000_000_000, seed: int = 0,
-                     chunk_size: int = 1024 * 1024) -> SynthLog:
+def write_stereo_log(
+    path: Path,
+    *,
+    vehicle: str = "uav1",
+    n_frames: int = 10,
+    rate_hz: float = 20.0,
+    size: tuple[int, int] = (64, 48),
+    imu_rate_hz: float = 200.0,
+    camera_info: bool = True,
+    tf: bool = True,
+    baseline_m: float = 0.1,
+    right_offset_ns: int = 0,
+    drop_right: tuple[int, ...] = (),
+    nan_imu: tuple[int, ...] = (),
+    backwards_imu_at: int | None = None,
+    info_size: tuple[int, int] | None = None,
+    fx: float = 50.0,
+    t0_ns: int = 1_000_000_000,
+    seed: int = 0,
+    chunk_size: int = 1024 * 1024,
+) -> SynthLog:
     rng = np.random.default_rng(seed)
     out = SynthLog(path)
     w, h = size
@@ -64,9 +92,14 @@ def write_stereo_log(path: Path, *, vehicle: str = "uav1", n_frames: int = 10,
     events.sort()
     with LogWriter(path, chunk_size=chunk_size) as log:
         if tf:
-            log.write_tf_static("/tf_static", t0_ns, [
-                (f"{vehicle}/base_link", lf, left_cam.T_body_cam),
-                (f"{vehicle}/base_link", rf, right_cam.T_body_cam)])
+            log.write_tf_static(
+                "/tf_static",
+                t0_ns,
+                [
+                    (f"{vehicle}/base_link", lf, left_cam.T_body_cam),
+                    (f"{vehicle}/base_link", rf, right_cam.T_body_cam),
+                ],
+            )
         for stamp, _, kind, idx in events:
             if kind in ("left", "right"):
                 img = rng.integers(0, 256, size=(h, w), dtype=np.uint8)
@@ -83,8 +116,9 @@ def write_stereo_log(path: Path, *, vehicle: str = "uav1", n_frames: int = 10,
                 s = stamp
                 if backwards_imu_at is not None and idx == backwards_imu_at:
                     s = stamp - 5 * imu_dt
-                log.write_imu(f"/{vehicle}/imu", s, gyro, acc, f"{vehicle}/base_link",
-                              log_time_ns=stamp)
+                log.write_imu(
+                    f"/{vehicle}/imu", s, gyro, acc, f"{vehicle}/base_link", log_time_ns=stamp
+                )
                 if idx not in nan_imu:
                     out.imu.append((s, gyro, acc))
             else:

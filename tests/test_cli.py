@@ -39,8 +39,9 @@ def test_stage_commands_take_config_and_set(cvslam):
 
 
 def test_info_reports_vehicle_topics_pairs_and_calibration(cvslam, tmp_path):
-    synth = write_stereo_log(tmp_path / "a.mcap", n_frames=12, drop_right=(5,),
-                             nan_imu=(7,), baseline_m=0.2)
+    synth = write_stereo_log(
+        tmp_path / "a.mcap", n_frames=12, drop_right=(5,), nan_imu=(7,), baseline_m=0.2
+    )
     res = cvslam("info", synth.path)
     assert res.code == 0, res.err
     assert "vehicle uav1" in res.out
@@ -79,21 +80,38 @@ def _write_odd_encoding(path):
         for side in ("left", "right"):
             cam = camera(2, 2, 2.0, right=side == "right", frame_id=f"v/{side}")
             log.write_camera_info(f"/v/stereo/{side}/camera_info", 10**9, cam)
-            log.write(f"/v/stereo/{side}/image_raw", "sensor_msgs/msg/Image", {
-                "header": header(10**9, f"v/{side}"), "height": 2, "width": 2,
-                "encoding": "yuv422", "is_bigendian": 0, "step": 4, "data": bytes(8)}, 10**9)
+            log.write(
+                f"/v/stereo/{side}/image_raw",
+                "sensor_msgs/msg/Image",
+                {
+                    "header": header(10**9, f"v/{side}"),
+                    "height": 2,
+                    "width": 2,
+                    "encoding": "yuv422",
+                    "is_bigendian": 0,
+                    "step": 4,
+                    "data": bytes(8),
+                },
+                10**9,
+            )
 
 
-@pytest.mark.parametrize("case, expected", [
-    ("missing", "nope.mcap: file not found"),
-    ("not_mcap", "not an MCAP file"),
-    ("absent_topic", "topic /v9/imu (logs.vehicles.uav1.topics.imu) is not in the log"),
-    ("size", "image is 64x48 but its calibration (CameraInfo /uav1/stereo/left/camera_info "
-             "+ /tf_static) is for 70x48"),
-    ("encoding", "unknown image encoding 'yuv422'"),
-    ("zero_focal", "non-positive focal length"),
-    ("bad_key", "--set logs.nope=1: logs.nope: unknown key"),
-])
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("missing", "nope.mcap: file not found"),
+        ("not_mcap", "not an MCAP file"),
+        ("absent_topic", "topic /v9/imu (logs.vehicles.uav1.topics.imu) is not in the log"),
+        (
+            "size",
+            "image is 64x48 but its calibration (CameraInfo /uav1/stereo/left/camera_info "
+            "+ /tf_static) is for 70x48",
+        ),
+        ("encoding", "unknown image encoding 'yuv422'"),
+        ("zero_focal", "non-positive focal length"),
+        ("bad_key", "--set logs.nope=1: logs.nope: unknown key"),
+    ],
+)
 def test_bad_input_is_one_line_and_exit_1(cvslam, tmp_path, case, expected):
     args: list[object] = ["info"]
     if case == "missing":
@@ -103,8 +121,11 @@ def test_bad_input_is_one_line_and_exit_1(cvslam, tmp_path, case, expected):
         p.write_text("hello")
         args.append(p)
     elif case == "absent_topic":
-        args += [write_stereo_log(tmp_path / "a.mcap").path,
-                 "--set", "logs.vehicles.uav1.topics.imu=/v9/imu"]
+        args += [
+            write_stereo_log(tmp_path / "a.mcap").path,
+            "--set",
+            "logs.vehicles.uav1.topics.imu=/v9/imu",
+        ]
     elif case == "size":
         args.append(write_stereo_log(tmp_path / "a.mcap", info_size=(70, 48)).path)
     elif case == "encoding":
@@ -129,15 +150,20 @@ def test_usage_error_exits_2(cvslam):
 def test_console_script_error_has_no_traceback(tmp_path):
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"\0" * 100)
-    proc = subprocess.run([sys.executable, "-m", "cvslam_cli", "info", str(bad)],
-                          capture_output=True, text=True, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "cvslam_cli", "info", str(bad)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     assert proc.returncode == 1
     assert proc.stderr.strip() == f"cvslam: error: {bad}: not an MCAP file (bad magic bytes)"
 
 
 def test_truncated_log_warns_and_reports_readable_prefix(cvslam, tmp_path):
-    synth = write_stereo_log(tmp_path / "full.mcap", n_frames=30, size=(160, 120),
-                             chunk_size=64 * 1024)
+    synth = write_stereo_log(
+        tmp_path / "full.mcap", n_frames=30, size=(160, 120), chunk_size=64 * 1024
+    )
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(synth.path.read_bytes()[: synth.path.stat().st_size // 2])
     res = cvslam("info", "--json", cut)
@@ -160,7 +186,54 @@ def test_backwards_stamps_and_nan_are_reported_not_fatal(cvslam, tmp_path):
 def test_zero_baseline_is_fatal(cvslam, tmp_path):
     synth = write_stereo_log(tmp_path / "a.mcap", camera_info=False, tf=False)
     cam = "{width: 64, height: 48, fx: 50, fy: 50, cx: 32, cy: 24}"
-    res = cvslam("info", synth.path, "--set", f"logs.vehicles.uav1.rig.left={cam}",
-                 "--set", f"logs.vehicles.uav1.rig.right={cam}")
+    res = cvslam(
+        "info",
+        synth.path,
+        "--set",
+        f"logs.vehicles.uav1.rig.left={cam}",
+        "--set",
+        f"logs.vehicles.uav1.rig.right={cam}",
+    )
     assert res.code == 1
     assert "zero stereo baseline" in res.err.splitlines()[-1]
+
+
+def test_import_euroc_then_info(cvslam, shared_data, tmp_path):
+    out = tmp_path / "euroc.mcap"
+    res = cvslam(
+        "import", "euroc", shared_data / "euroc_v101_micro" / "mav0", "-o", out, "--vehicle", "uav1"
+    )
+    assert res.code == 0, res.err
+    assert (tmp_path / "euroc.config.yaml").is_file()  # the resolved config beside the output
+    report = json.loads(cvslam("info", "--json", out).out)
+    v = report["vehicles"]["uav1"]
+    topics = {t["role"]: t for t in v["topics"]}
+    assert v["stereo"]["pairs"] == 95
+    assert topics["left_image"]["rate_hz"] == pytest.approx(20.0, rel=1e-3)
+    assert topics["imu"]["rate_hz"] == pytest.approx(200.0, rel=0.01)
+    assert topics["left_image"]["image"] == {"width": 752, "height": 480, "encoding": "mono8"}
+    assert v["calibration"]["rectified"] is False
+    assert v["calibration"]["left"]["distortion_model"] == "plumb_bob"
+    assert report["problems"] == []
+    md = report["logs"][0]["metadata"]["cvslam.import"]
+    assert md["nav_frame"] == "NED" and md["dataset"] == "euroc"
+
+
+def test_import_kitti_then_info(cvslam, shared_data, tmp_path):
+    out = tmp_path / "kitti.mcap"
+    res = cvslam("import", "kitti", shared_data / "kitti_clip_a", "-o", out, "--vehicle", "car1")
+    assert res.code == 0, res.err
+    text = cvslam("info", out).out
+    assert "stereo pairs: 51 (unpaired left 0, right 0" in text
+    assert "baseline 0.5372 m, rectified" in text
+    report = json.loads(cvslam("info", "--json", out).out)
+    topics = {t["role"]: t for t in report["vehicles"]["car1"]["topics"]}
+    assert topics["left_image"]["rate_hz"] == pytest.approx(10.0)
+    assert report["vehicles"]["car1"]["calibration"]["baseline_m"] == pytest.approx(0.537, abs=1e-3)
+
+
+def test_import_bad_folder_is_one_line(cvslam, tmp_path):
+    res = cvslam("import", "kitti", tmp_path / "nowhere", "-o", tmp_path / "k.mcap")
+    assert res.code == 1 and "Traceback" not in res.err
+    assert len(res.err.strip().splitlines()) == 1 and "nowhere" in res.err
+    assert not list(tmp_path.glob("k.*"))

@@ -36,13 +36,12 @@ def test_default_yaml_documents_every_key():
             continue
         # a comment on the line before, or the key belongs to a group whose earlier sibling
         # carries the comment (width/height, fx..cy, the right camera's keys)
-        window = lines[max(0, i - 10):i]
+        window = lines[max(0, i - 10) : i]
         assert any(w.strip().startswith("#") for w in window), f"undocumented: {line}"
 
 
 def test_resolved_config_round_trips_through_yaml(tmp_path):
-    cfg = load_config(overrides=["logs.stereo_pair_tolerance_ms=4.5",
-                                 "logs.vehicles.tb3.kind=ugv"])
+    cfg = load_config(overrides=["logs.stereo_pair_tolerance_ms=4.5", "logs.vehicles.tb3.kind=ugv"])
     path = tmp_path / "resolved.yaml"
     path.write_text(dump_config(cfg))
     assert load_config([path]) == cfg
@@ -50,8 +49,10 @@ def test_resolved_config_round_trips_through_yaml(tmp_path):
 
 def test_vehicle_entries_merge_over_defaults(tmp_path):
     f = tmp_path / "c.yaml"
-    f.write_text("logs:\n  vehicle_defaults:\n    topics:\n      imu: /{vehicle}/imu0\n"
-                 "  vehicles:\n    a: {kind: ugv}\n    b: {topics: {odom: /wheels}}\n")
+    f.write_text(
+        "logs:\n  vehicle_defaults:\n    topics:\n      imu: /{vehicle}/imu0\n"
+        "  vehicles:\n    a: {kind: ugv}\n    b: {topics: {odom: /wheels}}\n"
+    )
     cfg = load_config([f])
     assert cfg.logs.vehicles["a"].kind == "ugv"
     assert cfg.logs.vehicles["a"].topics.imu == "/{vehicle}/imu0"
@@ -70,22 +71,36 @@ def test_later_sources_override_earlier(tmp_path):
     assert (cfg.logs.gap_factor, cfg.logs.reorder_window_ms) == (5.0, 20.0)
 
 
-@pytest.mark.parametrize("text, message", [
-    ("logs: {colour: red}\n", "c.yaml: logs.colour: unknown key"),
-    ("logs: {gap_factor: fast}\n", "c.yaml: logs.gap_factor: expected a number > 1.0, got 'fast'"),
-    ("logs: {gap_factor: 0.5}\n", "c.yaml: logs.gap_factor: expected a number > 1.0, got 0.5"),
-    ("logs: {stereo_pair_tolerance_ms: -1}\n",
-     "c.yaml: logs.stereo_pair_tolerance_ms: expected a number >= 0.0, got -1"),
-    ("logs: {vehicles: {a: {kind: boat}}}\n",
-     "c.yaml: logs.vehicles.a.kind: expected one of 'uav', 'ugv', got 'boat'"),
-    ("logs: {vehicles: {a: {rig: {left: {width: 1.5}}}}}\n",
-     "c.yaml: logs.vehicles.a.rig.left.width: expected an integer >= 0, got 1.5"),
-    ("logs: {vehicle_defaults: {rig: {left: {distortion: [1, x]}}}}\n",
-     "c.yaml: logs.vehicle_defaults.rig.left.distortion[1]: expected a number, got 'x'"),
-    ("logs: {tf_static_topic: true}\n", "c.yaml: logs.tf_static_topic: expected a string"),
-    ("- just\n- a list\n", "c.yaml: expected a mapping of config keys at the top level"),
-    ("logs: {a: [1, 2\n", "c.yaml: not valid YAML"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("logs: {colour: red}\n", "c.yaml: logs.colour: unknown key"),
+        (
+            "logs: {gap_factor: fast}\n",
+            "c.yaml: logs.gap_factor: expected a number > 1.0, got 'fast'",
+        ),
+        ("logs: {gap_factor: 0.5}\n", "c.yaml: logs.gap_factor: expected a number > 1.0, got 0.5"),
+        (
+            "logs: {stereo_pair_tolerance_ms: -1}\n",
+            "c.yaml: logs.stereo_pair_tolerance_ms: expected a number >= 0.0, got -1",
+        ),
+        (
+            "logs: {vehicles: {a: {kind: boat}}}\n",
+            "c.yaml: logs.vehicles.a.kind: expected one of 'uav', 'ugv', got 'boat'",
+        ),
+        (
+            "logs: {vehicles: {a: {rig: {left: {width: 1.5}}}}}\n",
+            "c.yaml: logs.vehicles.a.rig.left.width: expected an integer >= 0, got 1.5",
+        ),
+        (
+            "logs: {vehicle_defaults: {rig: {left: {distortion: [1, x]}}}}\n",
+            "c.yaml: logs.vehicle_defaults.rig.left.distortion[1]: expected a number, got 'x'",
+        ),
+        ("logs: {tf_static_topic: true}\n", "c.yaml: logs.tf_static_topic: expected a string"),
+        ("- just\n- a list\n", "c.yaml: expected a mapping of config keys at the top level"),
+        ("logs: {a: [1, 2\n", "c.yaml: not valid YAML"),
+    ],
+)
 def test_bad_config_file_gives_one_line_naming_file_and_key(tmp_path, text, message):
     f = tmp_path / "c.yaml"
     f.write_text(text)

@@ -69,18 +69,22 @@ class CameraModel:
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             raise CalibrationError(f"{name}: intrinsics K must be a finite 3x3 matrix")
         if self.fx <= 0 or self.fy <= 0:
-            raise CalibrationError(f"{name}: non-positive focal length "
-                                   f"(fx={self.fx:g}, fy={self.fy:g})")
+            raise CalibrationError(
+                f"{name}: non-positive focal length (fx={self.fx:g}, fy={self.fy:g})"
+            )
         if self.width <= 0 or self.height <= 0:
-            raise CalibrationError(f"{name}: image size {self.width}x{self.height} is not "
-                                   "positive")
+            raise CalibrationError(f"{name}: image size {self.width}x{self.height} is not positive")
         if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
-            raise CalibrationError(f"{name}: principal point ({self.cx:g}, {self.cy:g}) lies "
-                                   f"outside the {self.width}x{self.height} image")
+            raise CalibrationError(
+                f"{name}: principal point ({self.cx:g}, {self.cy:g}) lies "
+                f"outside the {self.width}x{self.height} image"
+            )
         if self.distortion_model not in DISTORTION_MODELS:
-            raise CalibrationError(f"{name}: unknown distortion model "
-                                   f"{self.distortion_model!r} (expected one of "
-                                   f"{', '.join(DISTORTION_MODELS)})")
+            raise CalibrationError(
+                f"{name}: unknown distortion model "
+                f"{self.distortion_model!r} (expected one of "
+                f"{', '.join(DISTORTION_MODELS)})"
+            )
         if not np.all(np.isfinite(self.D)):
             raise CalibrationError(f"{name}: distortion coefficients are not finite")
         if not is_rotation(self.T_body_cam[:3, :3], tol=1e-4):
@@ -90,15 +94,20 @@ class CameraModel:
 
     def check_image_size(self, width: int, height: int, name: str) -> None:
         if (width, height) != (self.width, self.height):
-            raise CalibrationError(f"{name}: image is {width}x{height} but its calibration "
-                                   f"({self.source}) is for {self.width}x{self.height}")
+            raise CalibrationError(
+                f"{name}: image is {width}x{height} but its calibration "
+                f"({self.source}) is for {self.width}x{self.height}"
+            )
 
     def describe(self) -> dict[str, object]:
         return {
             "source": self.source,
             "width": self.width,
             "height": self.height,
-            "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
             "distortion_model": self.distortion_model,
             "D": [float(d) for d in self.D],
             "frame_id": self.frame_id,
@@ -135,20 +144,25 @@ class StereoRig:
         """No distortion, identical orientation, right camera displaced along x only."""
         T = self.T_left_right
         t = T[:3, 3]
-        return bool(not self.left.has_distortion and not self.right.has_distortion
-                    and np.allclose(T[:3, :3], np.eye(3), atol=1e-6)
-                    and abs(t[1]) + abs(t[2]) <= 1e-6 * max(abs(t[0]), 1e-9))
+        return bool(
+            not self.left.has_distortion
+            and not self.right.has_distortion
+            and np.allclose(T[:3, :3], np.eye(3), atol=1e-6)
+            and abs(t[1]) + abs(t[2]) <= 1e-6 * max(abs(t[0]), 1e-9)
+        )
 
     def validate(self, name: str) -> None:
         self.left.validate(f"{name} left camera")
         self.right.validate(f"{name} right camera")
         if self.baseline_m < 1e-6:
-            raise CalibrationError(f"{name}: zero stereo baseline (left and right cameras "
-                                   "are at the same place)")
+            raise CalibrationError(
+                f"{name}: zero stereo baseline (left and right cameras are at the same place)"
+            )
         b_p = self.baseline_from_projection_m
         if b_p is not None and b_p <= 0:
-            raise CalibrationError(f"{name}: right projection matrix gives a non-positive "
-                                   f"baseline ({b_p:g} m)")
+            raise CalibrationError(
+                f"{name}: right projection matrix gives a non-positive baseline ({b_p:g} m)"
+            )
 
     def describe(self) -> dict[str, object]:
         return {

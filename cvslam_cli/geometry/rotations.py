@@ -17,11 +17,20 @@ def quat_xyzw_to_matrix(q_xyzw: F64) -> F64:
     q = np.asarray(q_xyzw, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     x, y, z, w = np.moveaxis(q, -1, 0)
-    R = np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    ], axis=-1)
+    R = np.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - z * w),
+            2 * (x * z + y * w),
+            2 * (x * y + z * w),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - x * w),
+            2 * (x * z - y * w),
+            2 * (y * z + x * w),
+            1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
     return R.reshape((*q.shape[:-1], 3, 3))
 
 
@@ -51,13 +60,21 @@ def matrix_to_quat_xyzw(R: F64) -> F64:
 
 def euler_zyx_to_matrix(roll: float, pitch: float, yaw: float) -> F64:
     """C_nav_body from ZYX Euler angles (paper's C^n_b)."""
-    cr, sr, cp, sp, cy, sy = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch),
-                              np.cos(yaw), np.sin(yaw))
-    return np.array([
-        [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
-        [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
-        [-sp, sr * cp, cr * cp],
-    ])
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll),
+        np.sin(roll),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(yaw),
+        np.sin(yaw),
+    )
+    return np.array(
+        [
+            [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
+            [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
+            [-sp, sr * cp, cr * cp],
+        ]
+    )
 
 
 def matrix_to_euler_zyx(C_nav_body: F64) -> F64:
@@ -85,5 +102,6 @@ def invert_T(T: F64) -> F64:
 
 def is_rotation(R: F64, tol: float = 1e-6) -> bool:
     R = np.asarray(R, dtype=float)
-    return bool(R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=tol)
-                and np.linalg.det(R) > 0)
+    return bool(
+        R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=tol) and np.linalg.det(R) > 0
+    )

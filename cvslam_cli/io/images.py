@@ -32,16 +32,19 @@ def decode_raw(msg: Any) -> tuple[np.ndarray, str]:
     """sensor_msgs/msg/Image -> (array, encoding)."""
     encoding = msg.encoding
     if encoding not in RAW_ENCODINGS:
-        raise ImageDecodeError(f"unknown image encoding {encoding!r} (supported: "
-                               f"{', '.join(RAW_ENCODINGS)})")
+        raise ImageDecodeError(
+            f"unknown image encoding {encoding!r} (supported: {', '.join(RAW_ENCODINGS)})"
+        )
     dtype, channels = RAW_ENCODINGS[encoding]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     row_bytes = w * channels * dtype.itemsize
     if h <= 0 or w <= 0:
         raise ImageDecodeError(f"image has no pixels ({w}x{h})")
     if step < row_bytes or len(msg.data) < step * h:
-        raise ImageDecodeError(f"image data holds {len(msg.data)} bytes, expected "
-                               f"{h} rows of {max(step, row_bytes)} bytes ({w}x{h} {encoding})")
+        raise ImageDecodeError(
+            f"image data holds {len(msg.data)} bytes, expected "
+            f"{h} rows of {max(step, row_bytes)} bytes ({w}x{h} {encoding})"
+        )
     buf = np.frombuffer(msg.data, dtype=np.uint8, count=step * h).reshape(h, step)
     if step != row_bytes:
         buf = buf[:, :row_bytes]
@@ -63,8 +66,9 @@ def decode_compressed(msg: Any) -> tuple[np.ndarray, str]:
     """sensor_msgs/msg/CompressedImage (jpeg, png) -> (array, format)."""
     fmt = str(msg.format).lower()
     if not any(k in fmt for k in ("jpeg", "jpg", "png")):
-        raise ImageDecodeError(f"unknown compressed image format {msg.format!r} "
-                               "(supported: jpeg, png)")
+        raise ImageDecodeError(
+            f"unknown compressed image format {msg.format!r} (supported: jpeg, png)"
+        )
     data = np.frombuffer(msg.data, dtype=np.uint8)
     arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if arr is None:
@@ -89,5 +93,11 @@ def raw_fields(image: np.ndarray) -> dict[str, Any]:
     else:
         raise ValueError(f"cannot encode image of shape {img.shape} and dtype {img.dtype}")
     h, w = img.shape[:2]
-    return {"height": h, "width": w, "encoding": encoding, "is_bigendian": 0,
-            "step": img.strides[0], "data": img.tobytes()}
+    return {
+        "height": h,
+        "width": w,
+        "encoding": encoding,
+        "is_bigendian": 0,
+        "step": img.strides[0],
+        "data": img.tobytes(),
+    }

@@ -45,10 +45,18 @@ from cvslam_cli.io.records import (
 
 log = logging.getLogger("cvslam")
 
-Role = Literal["left_image", "right_image", "left_info", "right_info", "imu", "odom",
-               "ground_truth"]
-ROLES: tuple[Role, ...] = ("left_image", "right_image", "left_info", "right_info", "imu",
-                           "odom", "ground_truth")
+Role = Literal[
+    "left_image", "right_image", "left_info", "right_info", "imu", "odom", "ground_truth"
+]
+ROLES: tuple[Role, ...] = (
+    "left_image",
+    "right_image",
+    "left_info",
+    "right_info",
+    "imu",
+    "odom",
+    "ground_truth",
+)
 EXPECTED_TYPES: dict[str, tuple[str, ...]] = {
     "left_image": ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"),
     "right_image": ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"),
@@ -166,21 +174,32 @@ def _template_regex(template: str) -> re.Pattern[str] | None:
 
 def _camera_from_config(cfg: CameraConfig, frame_id: str) -> CameraModel:
     K = np.array([[cfg.fx, 0.0, cfg.cx], [0.0, cfg.fy, cfg.cy], [0.0, 0.0, 1.0]])
-    return CameraModel(width=cfg.width, height=cfg.height, K=K, D=np.asarray(cfg.distortion),
-                       distortion_model=cfg.distortion_model,
-                       T_body_cam=np.asarray(cfg.T_body_cam, dtype=float).reshape(4, 4),
-                       frame_id=frame_id, source="config")
+    return CameraModel(
+        width=cfg.width,
+        height=cfg.height,
+        K=K,
+        D=np.asarray(cfg.distortion),
+        distortion_model=cfg.distortion_model,
+        T_body_cam=np.asarray(cfg.T_body_cam, dtype=float).reshape(4, 4),
+        frame_id=frame_id,
+        source="config",
+    )
 
 
 def camera_from_info(msg: Any, source: str) -> CameraModel:
     """CameraModel from a decoded sensor_msgs/msg/CameraInfo."""
     P = np.asarray(msg.p, dtype=float).reshape(3, 4)
     return CameraModel(
-        width=int(msg.width), height=int(msg.height),
-        K=np.asarray(msg.k, dtype=float).reshape(3, 3), D=np.asarray(msg.d, dtype=float),
+        width=int(msg.width),
+        height=int(msg.height),
+        K=np.asarray(msg.k, dtype=float).reshape(3, 3),
+        D=np.asarray(msg.d, dtype=float),
         distortion_model=str(msg.distortion_model) or "none",
         R_rect=np.asarray(msg.r, dtype=float).reshape(3, 3),
-        P=P if np.any(P) else None, frame_id=str(msg.header.frame_id), source=source)
+        P=P if np.any(P) else None,
+        frame_id=str(msg.header.frame_id),
+        source=source,
+    )
 
 
 class StaticTransforms:
@@ -196,8 +215,9 @@ class StaticTransforms:
     def add_message(self, msg: Any) -> None:
         for tr in msg.transforms:
             t, q = tr.transform.translation, tr.transform.rotation
-            T = make_T(quat_xyzw_to_matrix(np.array([q.x, q.y, q.z, q.w])),
-                       np.array([t.x, t.y, t.z]))
+            T = make_T(
+                quat_xyzw_to_matrix(np.array([q.x, q.y, q.z, q.w])), np.array([t.x, t.y, t.z])
+            )
             self.add(_strip(tr.header.frame_id), _strip(tr.child_frame_id), T)
 
     def lookup(self, target: str, source: str) -> np.ndarray | None:
@@ -226,8 +246,9 @@ def _strip(frame: str) -> str:
 class LogSet:
     """Several logs read as one, split into vehicles (see the module docstring)."""
 
-    def __init__(self, sources: Sequence[LogSource], cfg: LogsConfig, *,
-                 strict: bool = True) -> None:
+    def __init__(
+        self, sources: Sequence[LogSource], cfg: LogsConfig, *, strict: bool = True
+    ) -> None:
         if not sources:
             raise LogError("no log given")
         self.sources = list(sources)
@@ -240,8 +261,10 @@ class LogSet:
             for name, info in src.topics().items():
                 old = self.topic_infos.get(name)
                 if old is not None and old.schema_name != info.schema_name:
-                    raise LogError(f"{src.name}: {name}: type {info.schema_name} differs from "
-                                   f"{old.schema_name} in another log")
+                    raise LogError(
+                        f"{src.name}: {name}: type {info.schema_name} differs from "
+                        f"{old.schema_name} in another log"
+                    )
                 count = info.message_count + (old.message_count if old else 0)
                 self.topic_infos[name] = TopicInfo(name, info.schema_name, count)
                 self._topic_source.setdefault(name, []).append(i)
@@ -289,8 +312,11 @@ class LogSet:
         for role in ROLES:
             topic = getattr(topics, role)
             compressed = f"{topic}/compressed"
-            if (topic not in self.topic_infos and role.endswith("_image")
-                    and compressed in self.topic_infos):
+            if (
+                topic not in self.topic_infos
+                and role.endswith("_image")
+                and compressed in self.topic_infos
+            ):
                 topic = updates[role] = compressed
             if topic in self.topic_infos:
                 present.append(role)
@@ -304,8 +330,11 @@ class LogSet:
             chosen = dict(cfg.vehicles)
         else:
             chosen = {}
-            patterns = [p for p in (_template_regex(t) for t in
-                                    cfg.vehicle_defaults.topics.__dict__.values()) if p]
+            patterns = [
+                p
+                for p in (_template_regex(t) for t in cfg.vehicle_defaults.topics.__dict__.values())
+                if p
+            ]
             for topic in sorted(self.topic_infos):
                 for pat in patterns:
                     m = pat.match(topic)
@@ -320,28 +349,37 @@ class LogSet:
             for role in present:
                 t = getattr(topics, role)
                 if t in owner:
-                    raise LogError(f"{self.names}: topic {t} is mapped to both vehicle "
-                                   f"{owner[t]} and vehicle {name}")
+                    raise LogError(
+                        f"{self.names}: topic {t} is mapped to both vehicle "
+                        f"{owner[t]} and vehicle {name}"
+                    )
                 owner[t] = name
                 info = self.topic_infos[t]
                 if info.schema_name not in EXPECTED_TYPES[role]:
-                    raise LogError(f"{self.names}: {t}: has type {info.schema_name}, expected "
-                                   f"{' or '.join(EXPECTED_TYPES[role])} for {name}'s {role}")
+                    raise LogError(
+                        f"{self.names}: {t}: has type {info.schema_name}, expected "
+                        f"{' or '.join(EXPECTED_TYPES[role])} for {name}'s {role}"
+                    )
             out[name] = VehicleTopics(name, vcfg, topics, tuple(present))
         return out
 
-    def _check_named_topics(self, name: str, vcfg: VehicleConfig, topics: TopicMap,
-                            present: list[str]) -> None:
+    def _check_named_topics(
+        self, name: str, vcfg: VehicleConfig, topics: TopicMap, present: list[str]
+    ) -> None:
         """A topic the config names (differs from the default template) must exist."""
         default = self.cfg.vehicle_defaults.topics.resolve(name)
         for role in ROLES:
             named = getattr(vcfg.topics.resolve(name), role)
             if role not in present and named != getattr(default, role):
-                raise LogError(f"{self.names}: topic {named} (logs.vehicles.{name}.topics."
-                               f"{role}) is not in the log")
+                raise LogError(
+                    f"{self.names}: topic {named} (logs.vehicles.{name}.topics."
+                    f"{role}) is not in the log"
+                )
         if not present:
-            raise LogError(f"{self.names}: none of vehicle {name}'s topics are in the log "
-                           f"(expected e.g. {topics.left_image} or {topics.imu})")
+            raise LogError(
+                f"{self.names}: none of vehicle {name}'s topics are in the log "
+                f"(expected e.g. {topics.left_image} or {topics.imu})"
+            )
 
     def unassigned_topics(self) -> list[TopicInfo]:
         return [i for t, i in sorted(self.topic_infos.items()) if t not in self._role_of]
@@ -387,9 +425,11 @@ class LogSet:
             else:
                 raise CalibrationError(
                     f"{self.names}: vehicle {vehicle}: no calibration for the {side} camera "
-                    f"(no CameraInfo on {info_topic} and rig.{side} is not configured)")
-            T_body_cam = self.static_transforms.lookup(body_frame, cam.frame_id) \
-                if cam.frame_id else None
+                    f"(no CameraInfo on {info_topic} and rig.{side} is not configured)"
+                )
+            T_body_cam = (
+                self.static_transforms.lookup(body_frame, cam.frame_id) if cam.frame_id else None
+            )
             if T_body_cam is None:
                 T_body_cam = np.asarray(extr, dtype=float).reshape(4, 4)
             else:
@@ -419,24 +459,33 @@ class LogSet:
         else:
             yield from heapq.merge(*streams, key=lambda r: r.log_time_ns)
 
-    def records(self, vehicles: Iterable[str] | None = None,
-                roles: Iterable[str] = ("left_image", "right_image", "imu", "odom",
-                                        "ground_truth")) -> Iterator[Record]:
+    def records(
+        self,
+        vehicles: Iterable[str] | None = None,
+        roles: Iterable[str] = ("left_image", "right_image", "imu", "odom", "ground_truth"),
+    ) -> Iterator[Record]:
         """Typed records of `vehicles` (all by default), ordered by header stamp."""
         selected = list(self.vehicles) if vehicles is None else list(vehicles)
         for name in selected:
             if name not in self.vehicles:
-                raise LogError(f"{self.names}: no vehicle {name!r} in the logs (found: "
-                               f"{', '.join(self.vehicles) or 'none'})")
+                raise LogError(
+                    f"{self.names}: no vehicle {name!r} in the logs (found: "
+                    f"{', '.join(self.vehicles) or 'none'})"
+                )
         roles = set(roles)
-        topics = {self.vehicles[n].topic(r) for n in selected for r in self.vehicles[n].present
-                  if r in roles}
+        topics = {
+            self.vehicles[n].topic(r)
+            for n in selected
+            for r in self.vehicles[n].present
+            if r in roles
+        }
         window_ns = int(self.cfg.reorder_window_ms * 1e6)
         heap: list[tuple[int, int, Any]] = []
         counter = itertools.count()
         newest = -(2**63)
-        pairer = _StereoPairer(int(self.cfg.stereo_pair_tolerance_ms * 1e6), self.stats,
-                               self._role_of)
+        pairer = _StereoPairer(
+            int(self.cfg.stereo_pair_tolerance_ms * 1e6), self.stats, self._role_of
+        )
         for raw in self._raw_stream(topics):
             rec = self._convert(raw)
             if rec is None:
@@ -463,8 +512,10 @@ class LogSet:
         ts = self._topic_stats(vehicle, role, raw)
         stamp = stamp_ns_of(raw.msg)
         if not ts.observe(stamp) and ts.backwards == 1:
-            self._problem("warning", f"{self.names}: {raw.topic}: timestamps go backwards "
-                                     f"(first at stamp {stamp} ns)")
+            self._problem(
+                "warning",
+                f"{self.names}: {raw.topic}: timestamps go backwards (first at stamp {stamp} ns)",
+            )
         msg = raw.msg
         if role in ("left_image", "right_image"):
             return self._image(raw, vehicle, role, stamp, ts)
@@ -479,15 +530,25 @@ class LogSet:
         if role == "odom":
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
             lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
-            vals = np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w, lin.x, lin.y, lin.z,
-                             ang.x, ang.y, ang.z], dtype=float)
+            vals = np.array(
+                [p.x, p.y, p.z, q.x, q.y, q.z, q.w, lin.x, lin.y, lin.z, ang.x, ang.y, ang.z],
+                dtype=float,
+            )
             if not np.all(np.isfinite(vals)):
                 ts.dropped_nonfinite += 1
                 return None
-            return OdometryRecord(vehicle, stamp, str(msg.header.frame_id),
-                                  str(msg.child_frame_id), vals[0:3], vals[3:7], vals[7:10],
-                                  vals[10:13], np.asarray(msg.pose.covariance).reshape(6, 6),
-                                  np.asarray(msg.twist.covariance).reshape(6, 6))
+            return OdometryRecord(
+                vehicle,
+                stamp,
+                str(msg.header.frame_id),
+                str(msg.child_frame_id),
+                vals[0:3],
+                vals[3:7],
+                vals[7:10],
+                vals[10:13],
+                np.asarray(msg.pose.covariance).reshape(6, 6),
+                np.asarray(msg.twist.covariance).reshape(6, 6),
+            )
         if role == "ground_truth":
             p, q = msg.pose.position, msg.pose.orientation
             vals = np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w], dtype=float)
@@ -497,8 +558,9 @@ class LogSet:
             return PoseRecord(vehicle, stamp, str(msg.header.frame_id), vals[:3], vals[3:])
         return None
 
-    def _image(self, raw: RawMessage, vehicle: str, role: str, stamp: int,
-               ts: TopicStats) -> ImageRecord | None:
+    def _image(
+        self, raw: RawMessage, vehicle: str, role: str, stamp: int, ts: TopicStats
+    ) -> ImageRecord | None:
         try:
             if raw.schema_name == "sensor_msgs/msg/CompressedImage":
                 img, enc = decode_compressed(raw.msg)
@@ -523,6 +585,7 @@ class LogSet:
 
 def _replace(cam: CameraModel, **changes: Any) -> CameraModel:
     from dataclasses import replace
+
     return replace(cam, **changes)
 
 
@@ -534,8 +597,9 @@ class _StereoPairer:
     oldest queued image of the other side within the tolerance is its partner.
     """
 
-    def __init__(self, tolerance_ns: int, stats: dict[str, VehicleStats],
-                 role_of: dict[str, tuple[str, str]]) -> None:
+    def __init__(
+        self, tolerance_ns: int, stats: dict[str, VehicleStats], role_of: dict[str, tuple[str, str]]
+    ) -> None:
         self.tol = tolerance_ns
         self.stats = stats
         self.role_of = role_of

@@ -71,8 +71,10 @@ class McapLogSource:
         if not self.path.exists():
             raise LogError(f"{self.name}: file not found")
         if self.path.is_dir():
-            raise LogError(f"{self.name}: is a directory, expected an .mcap file "
-                           "(for a rosbag2 folder, give the .mcap inside it)")
+            raise LogError(
+                f"{self.name}: is a directory, expected an .mcap file "
+                "(for a rosbag2 folder, give the .mcap inside it)"
+            )
         try:
             with self.path.open("rb") as f:
                 head = f.read(len(MCAP_MAGIC))
@@ -106,8 +108,9 @@ class McapLogSource:
                     self._topics = {}
                     for cid, ch in summary.channels.items():
                         schema = summary.schemas.get(ch.schema_id)
-                        info = TopicInfo(ch.topic, schema.name if schema else "",
-                                         counts.get(cid, 0))
+                        info = TopicInfo(
+                            ch.topic, schema.name if schema else "", counts.get(cid, 0)
+                        )
                         self._add_topic(info)
             else:
                 self._topics = {}
@@ -134,8 +137,7 @@ class McapLogSource:
                     channels[rec.id] = rec
                 elif isinstance(rec, Message):
                     counts[rec.channel_id] = counts.get(rec.channel_id, 0) + 1
-        return [(ch, schemas.get(ch.schema_id), counts.get(cid, 0))
-                for cid, ch in channels.items()]
+        return [(ch, schemas.get(ch.schema_id), counts.get(cid, 0)) for cid, ch in channels.items()]
 
     def metadata(self) -> dict[str, dict[str, str]]:
         if self._metadata is None:
@@ -156,8 +158,9 @@ class McapLogSource:
             if self._indexed:
                 reader = SeekingReader(f)
                 try:
-                    stream = reader.iter_messages(topics=list(wanted) if wanted else None,
-                                                  log_time_order=True)
+                    stream = reader.iter_messages(
+                        topics=list(wanted) if wanted else None, log_time_order=True
+                    )
                     for schema, channel, message in stream:
                         yield self._decode(schema, channel, message, decoders)
                 except McapError as exc:
@@ -176,27 +179,35 @@ class McapLogSource:
                             continue
                         yield self._decode(schemas.get(ch.schema_id), ch, rec, decoders)
 
-    def _decode(self, schema: Schema | None, channel: Channel, message: Message,
-                decoders: dict[int, Any]) -> RawMessage:
+    def _decode(
+        self, schema: Schema | None, channel: Channel, message: Message, decoders: dict[int, Any]
+    ) -> RawMessage:
         dec = decoders.get(channel.id)
         if dec is None:
             if schema is None or channel.message_encoding != "cdr":
-                raise LogError(f"{self.name}: {channel.topic}: not a ROS 2 CDR topic "
-                               f"(message encoding {channel.message_encoding!r})")
+                raise LogError(
+                    f"{self.name}: {channel.topic}: not a ROS 2 CDR topic "
+                    f"(message encoding {channel.message_encoding!r})"
+                )
             try:
                 dec = self._decoders.decoder_for(channel.message_encoding, schema)
             except Exception as exc:  # the library raises several types for bad schemas
-                raise LogError(f"{self.name}: {channel.topic}: cannot use its schema "
-                               f"{schema.name!r} ({exc})") from None
+                raise LogError(
+                    f"{self.name}: {channel.topic}: cannot use its schema {schema.name!r} ({exc})"
+                ) from None
             if dec is None:
-                raise LogError(f"{self.name}: {channel.topic}: no decoder for schema "
-                               f"encoding {schema.encoding!r}")
+                raise LogError(
+                    f"{self.name}: {channel.topic}: no decoder for schema "
+                    f"encoding {schema.encoding!r}"
+                )
             decoders[channel.id] = dec
         try:
             msg = dec(message.data)
         except Exception as exc:  # a malformed CDR payload
-            raise LogError(f"{self.name}: {channel.topic}: message at log time "
-                           f"{message.log_time} cannot be decoded ({exc})") from None
+            raise LogError(
+                f"{self.name}: {channel.topic}: message at log time "
+                f"{message.log_time} cannot be decoded ({exc})"
+            ) from None
         return RawMessage(channel.topic, schema.name if schema else "", message.log_time, msg)
 
     def _stream_records(self, f: BinaryIO, *, warn: bool) -> Iterator[Any]:
@@ -211,9 +222,11 @@ class McapLogSource:
                 yield rec
         except (McapError, EOFError, ValueError, OSError) as exc:
             lost = self._size - good_bytes
-            text = (f"{self.name}: truncated or damaged MCAP ({type(exc).__name__}); read "
-                    f"{n_messages} messages from the first {good_bytes} of {self._size} "
-                    f"bytes, lost the last {lost} bytes ({100.0 * lost / self._size:.1f}%)")
+            text = (
+                f"{self.name}: truncated or damaged MCAP ({type(exc).__name__}); read "
+                f"{n_messages} messages from the first {good_bytes} of {self._size} "
+                f"bytes, lost the last {lost} bytes ({100.0 * lost / self._size:.1f}%)"
+            )
             if warn and text not in self.warnings:
                 self.warnings.append(text)
                 log.warning(text)

@@ -47,13 +47,15 @@ def camera_info_fields(cam: CameraModel, stamp_ns: int) -> dict[str, Any]:
     P = cam.P if cam.P is not None else np.hstack([cam.K, np.zeros((3, 1))])
     return {
         "header": header(stamp_ns, cam.frame_id),
-        "height": cam.height, "width": cam.width,
+        "height": cam.height,
+        "width": cam.width,
         "distortion_model": cam.distortion_model if cam.distortion_model != "none" else "",
         "d": [float(d) for d in cam.D],
         "k": [float(v) for v in np.asarray(cam.K).reshape(9)],
         "r": [float(v) for v in np.asarray(cam.R_rect).reshape(9)],
         "p": [float(v) for v in np.asarray(P).reshape(12)],
-        "binning_x": 0, "binning_y": 0,
+        "binning_x": 0,
+        "binning_y": 0,
         "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
     }
 
@@ -61,14 +63,22 @@ def camera_info_fields(cam: CameraModel, stamp_ns: int) -> dict[str, Any]:
 class LogWriter:
     """A ROS 2 MCAP being written. Use as a context manager."""
 
-    def __init__(self, path: str | os.PathLike[str], *, chunk_size: int = 4 * 1024 * 1024,
-                 compression: str = "zstd") -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        chunk_size: int = 4 * 1024 * 1024,
+        compression: str = "zstd",
+    ) -> None:
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.partial.open("wb")
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                "none": CompressionType.NONE}[compression]
+        comp = {
+            "zstd": CompressionType.ZSTD,
+            "lz4": CompressionType.LZ4,
+            "none": CompressionType.NONE,
+        }[compression]
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
         self._schemas: dict[str, Schema] = {}
         self.count = 0
@@ -76,8 +86,12 @@ class LogWriter:
     def __enter__(self) -> LogWriter:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
         if exc_type is None:
             self.close()
         else:
@@ -94,8 +108,14 @@ class LogWriter:
 
     # -- generic -------------------------------------------------------------------------
 
-    def write(self, topic: str, datatype: str, fields: dict[str, Any], stamp_ns: int,
-              log_time_ns: int | None = None) -> None:
+    def write(
+        self,
+        topic: str,
+        datatype: str,
+        fields: dict[str, Any],
+        stamp_ns: int,
+        log_time_ns: int | None = None,
+    ) -> None:
         schema = self._schemas.get(datatype)
         if schema is None:
             schema = self._writer.register_msgdef(datatype, msgdef_text(datatype))
@@ -110,62 +130,120 @@ class LogWriter:
     # -- typed helpers -------------------------------------------------------------------
 
     def write_image(self, topic: str, stamp_ns: int, image: np.ndarray, frame_id: str) -> None:
-        self.write(topic, "sensor_msgs/msg/Image",
-                   {"header": header(stamp_ns, frame_id), **raw_fields(image)}, stamp_ns)
+        self.write(
+            topic,
+            "sensor_msgs/msg/Image",
+            {"header": header(stamp_ns, frame_id), **raw_fields(image)},
+            stamp_ns,
+        )
 
-    def write_compressed_image(self, topic: str, stamp_ns: int, image: np.ndarray,
-                               frame_id: str, fmt: str = "png") -> None:
+    def write_compressed_image(
+        self, topic: str, stamp_ns: int, image: np.ndarray, frame_id: str, fmt: str = "png"
+    ) -> None:
         ok, buf = cv2.imencode(f".{fmt}", image)
         if not ok:
             raise ValueError(f"cannot encode image as {fmt}")
-        self.write(topic, "sensor_msgs/msg/CompressedImage",
-                   {"header": header(stamp_ns, frame_id), "format": fmt,
-                    "data": buf.tobytes()}, stamp_ns)
+        self.write(
+            topic,
+            "sensor_msgs/msg/CompressedImage",
+            {"header": header(stamp_ns, frame_id), "format": fmt, "data": buf.tobytes()},
+            stamp_ns,
+        )
 
     def write_camera_info(self, topic: str, stamp_ns: int, cam: CameraModel) -> None:
-        self.write(topic, "sensor_msgs/msg/CameraInfo", camera_info_fields(cam, stamp_ns),
-                   stamp_ns)
+        self.write(topic, "sensor_msgs/msg/CameraInfo", camera_info_fields(cam, stamp_ns), stamp_ns)
 
-    def write_imu(self, topic: str, stamp_ns: int, gyro_rad_s: Any, accel_m_s2: Any,
-                  frame_id: str, gyro_var: float = 0.0, accel_var: float = 0.0,
-                  log_time_ns: int | None = None) -> None:
+    def write_imu(
+        self,
+        topic: str,
+        stamp_ns: int,
+        gyro_rad_s: Any,
+        accel_m_s2: Any,
+        frame_id: str,
+        gyro_var: float = 0.0,
+        accel_var: float = 0.0,
+        log_time_ns: int | None = None,
+    ) -> None:
         cov_unknown = [-1.0] + [0.0] * 8  # orientation not provided (REP 145)
-        self.write(topic, "sensor_msgs/msg/Imu", {
-            "header": header(stamp_ns, frame_id),
-            "orientation": _quat([0, 0, 0, 1]),
-            "orientation_covariance": cov_unknown,
-            "angular_velocity": _vec(gyro_rad_s),
-            "angular_velocity_covariance": list((np.eye(3) * gyro_var).reshape(9)),
-            "linear_acceleration": _vec(accel_m_s2),
-            "linear_acceleration_covariance": list((np.eye(3) * accel_var).reshape(9)),
-        }, stamp_ns, log_time_ns)
+        self.write(
+            topic,
+            "sensor_msgs/msg/Imu",
+            {
+                "header": header(stamp_ns, frame_id),
+                "orientation": _quat([0, 0, 0, 1]),
+                "orientation_covariance": cov_unknown,
+                "angular_velocity": _vec(gyro_rad_s),
+                "angular_velocity_covariance": list((np.eye(3) * gyro_var).reshape(9)),
+                "linear_acceleration": _vec(accel_m_s2),
+                "linear_acceleration_covariance": list((np.eye(3) * accel_var).reshape(9)),
+            },
+            stamp_ns,
+            log_time_ns,
+        )
 
-    def write_pose(self, topic: str, stamp_ns: int, p_m: Any, q_xyzw: Any,
-                   frame_id: str) -> None:
-        self.write(topic, "geometry_msgs/msg/PoseStamped", {
-            "header": header(stamp_ns, frame_id),
-            "pose": {"position": _vec(p_m), "orientation": _quat(q_xyzw)},
-        }, stamp_ns)
+    def write_pose(self, topic: str, stamp_ns: int, p_m: Any, q_xyzw: Any, frame_id: str) -> None:
+        self.write(
+            topic,
+            "geometry_msgs/msg/PoseStamped",
+            {
+                "header": header(stamp_ns, frame_id),
+                "pose": {"position": _vec(p_m), "orientation": _quat(q_xyzw)},
+            },
+            stamp_ns,
+        )
 
-    def write_odometry(self, topic: str, stamp_ns: int, frame_id: str, child_frame_id: str,
-                       p_m: Any, q_xyzw: Any, linear_m_s: Any, angular_rad_s: Any,
-                       pose_cov: Any = None, twist_cov: Any = None) -> None:
+    def write_odometry(
+        self,
+        topic: str,
+        stamp_ns: int,
+        frame_id: str,
+        child_frame_id: str,
+        p_m: Any,
+        q_xyzw: Any,
+        linear_m_s: Any,
+        angular_rad_s: Any,
+        pose_cov: Any = None,
+        twist_cov: Any = None,
+    ) -> None:
         pc = np.zeros(36) if pose_cov is None else np.asarray(pose_cov, float).reshape(36)
         tc = np.zeros(36) if twist_cov is None else np.asarray(twist_cov, float).reshape(36)
-        self.write(topic, "nav_msgs/msg/Odometry", {
-            "header": header(stamp_ns, frame_id),
-            "child_frame_id": child_frame_id,
-            "pose": {"pose": {"position": _vec(p_m), "orientation": _quat(q_xyzw)},
-                     "covariance": [float(v) for v in pc]},
-            "twist": {"twist": {"linear": _vec(linear_m_s), "angular": _vec(angular_rad_s)},
-                      "covariance": [float(v) for v in tc]},
-        }, stamp_ns)
+        self.write(
+            topic,
+            "nav_msgs/msg/Odometry",
+            {
+                "header": header(stamp_ns, frame_id),
+                "child_frame_id": child_frame_id,
+                "pose": {
+                    "pose": {"position": _vec(p_m), "orientation": _quat(q_xyzw)},
+                    "covariance": [float(v) for v in pc],
+                },
+                "twist": {
+                    "twist": {"linear": _vec(linear_m_s), "angular": _vec(angular_rad_s)},
+                    "covariance": [float(v) for v in tc],
+                },
+            },
+            stamp_ns,
+        )
 
-    def write_tf_static(self, topic: str, stamp_ns: int,
-                        transforms: list[tuple[str, str, np.ndarray]]) -> None:
+    def write_tf_static(
+        self, topic: str, stamp_ns: int, transforms: list[tuple[str, str, np.ndarray]]
+    ) -> None:
         """`transforms`: (parent_frame, child_frame, T_parent_child 4x4)."""
-        self.write(topic, "tf2_msgs/msg/TFMessage", {"transforms": [
-            {"header": header(stamp_ns, parent), "child_frame_id": child,
-             "transform": {"translation": _vec(T[:3, 3]),
-                           "rotation": _quat(matrix_to_quat_xyzw(T[:3, :3]))}}
-            for parent, child, T in transforms]}, stamp_ns)
+        self.write(
+            topic,
+            "tf2_msgs/msg/TFMessage",
+            {
+                "transforms": [
+                    {
+                        "header": header(stamp_ns, parent),
+                        "child_frame_id": child,
+                        "transform": {
+                            "translation": _vec(T[:3, 3]),
+                            "rotation": _quat(matrix_to_quat_xyzw(T[:3, :3])),
+                        },
+                    }
+                    for parent, child, T in transforms
+                ]
+            },
+            stamp_ns,
+        )

@@ -22,39 +22,38 @@ MSG_FIELDS: dict[str, str] = {
     "geometry_msgs/msg/PoseStamped": "std_msgs/Header header\ngeometry_msgs/Pose pose",
     "geometry_msgs/msg/PoseWithCovariance": "geometry_msgs/Pose pose\nfloat64[36] covariance",
     "geometry_msgs/msg/Twist": "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular",
-    "geometry_msgs/msg/TwistWithCovariance": "geometry_msgs/Twist twist\n"
-                                             "float64[36] covariance",
+    "geometry_msgs/msg/TwistWithCovariance": "geometry_msgs/Twist twist\nfloat64[36] covariance",
     "geometry_msgs/msg/Transform": "geometry_msgs/Vector3 translation\n"
-                                   "geometry_msgs/Quaternion rotation",
+    "geometry_msgs/Quaternion rotation",
     "geometry_msgs/msg/TransformStamped": "std_msgs/Header header\nstring child_frame_id\n"
-                                          "geometry_msgs/Transform transform",
+    "geometry_msgs/Transform transform",
     "tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms",
     "sensor_msgs/msg/Image": "std_msgs/Header header\nuint32 height\nuint32 width\n"
-                             "string encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data",
+    "string encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data",
     "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data",
     "sensor_msgs/msg/RegionOfInterest": "uint32 x_offset\nuint32 y_offset\nuint32 height\n"
-                                        "uint32 width\nbool do_rectify",
+    "uint32 width\nbool do_rectify",
     "sensor_msgs/msg/CameraInfo": "std_msgs/Header header\nuint32 height\nuint32 width\n"
-                                  "string distortion_model\nfloat64[] d\nfloat64[9] k\n"
-                                  "float64[9] r\nfloat64[12] p\nuint32 binning_x\n"
-                                  "uint32 binning_y\nsensor_msgs/RegionOfInterest roi",
+    "string distortion_model\nfloat64[] d\nfloat64[9] k\n"
+    "float64[9] r\nfloat64[12] p\nuint32 binning_x\n"
+    "uint32 binning_y\nsensor_msgs/RegionOfInterest roi",
     "sensor_msgs/msg/Imu": "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\n"
-                           "float64[9] orientation_covariance\n"
-                           "geometry_msgs/Vector3 angular_velocity\n"
-                           "float64[9] angular_velocity_covariance\n"
-                           "geometry_msgs/Vector3 linear_acceleration\n"
-                           "float64[9] linear_acceleration_covariance",
+    "float64[9] orientation_covariance\n"
+    "geometry_msgs/Vector3 angular_velocity\n"
+    "float64[9] angular_velocity_covariance\n"
+    "geometry_msgs/Vector3 linear_acceleration\n"
+    "float64[9] linear_acceleration_covariance",
     "sensor_msgs/msg/PointField": "uint8 INT8=1\nuint8 UINT8=2\nuint8 INT16=3\nuint8 UINT16=4\n"
-                                  "uint8 INT32=5\nuint8 UINT32=6\nuint8 FLOAT32=7\n"
-                                  "uint8 FLOAT64=8\nstring name\nuint32 offset\n"
-                                  "uint8 datatype\nuint32 count",
+    "uint8 INT32=5\nuint8 UINT32=6\nuint8 FLOAT32=7\n"
+    "uint8 FLOAT64=8\nstring name\nuint32 offset\n"
+    "uint8 datatype\nuint32 count",
     "sensor_msgs/msg/PointCloud2": "std_msgs/Header header\nuint32 height\nuint32 width\n"
-                                   "sensor_msgs/PointField[] fields\nbool is_bigendian\n"
-                                   "uint32 point_step\nuint32 row_step\nuint8[] data\n"
-                                   "bool is_dense",
+    "sensor_msgs/PointField[] fields\nbool is_bigendian\n"
+    "uint32 point_step\nuint32 row_step\nuint8[] data\n"
+    "bool is_dense",
     "nav_msgs/msg/Odometry": "std_msgs/Header header\nstring child_frame_id\n"
-                             "geometry_msgs/PoseWithCovariance pose\n"
-                             "geometry_msgs/TwistWithCovariance twist",
+    "geometry_msgs/PoseWithCovariance pose\n"
+    "geometry_msgs/TwistWithCovariance twist",
     "nav_msgs/msg/Path": "std_msgs/Header header\ngeometry_msgs/PoseStamped[] poses",
 }
 

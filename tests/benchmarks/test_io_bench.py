@@ -35,17 +35,26 @@ def write_log(path: Path, n_pairs: int, seed: int = 0) -> Path:
     """A EuRoC-sized stereo log: blurred texture + per-frame sensor noise, 20 Hz, 200 Hz IMU."""
     rng = np.random.default_rng(seed)
     texture = cv2.GaussianBlur(rng.integers(0, 256, (2 * H, 2 * W), np.uint8), (0, 0), 1.5)
-    cams = {s: camera(W, H, 458.0, right=s == "right", baseline_m=0.11,
-                      frame_id=f"uav1/{s}_camera_optical") for s in ("left", "right")}
+    cams = {
+        s: camera(
+            W, H, 458.0, right=s == "right", baseline_m=0.11, frame_id=f"uav1/{s}_camera_optical"
+        )
+        for s in ("left", "right")
+    }
     with LogWriter(path) as log:
         for i in range(n_pairs):
             stamp = 10**9 + i * 50_000_000
             for j in range(10):
-                log.write_imu("/uav1/imu", stamp + j * 5_000_000, rng.normal(size=3),
-                              rng.normal(size=3), "uav1/base_link")
+                log.write_imu(
+                    "/uav1/imu",
+                    stamp + j * 5_000_000,
+                    rng.normal(size=3),
+                    rng.normal(size=3),
+                    "uav1/base_link",
+                )
             for side, cam in cams.items():
                 x, y = (7 * i + (5 if side == "right" else 0)) % W, (3 * i) % H
-                img = texture[y:y + H, x:x + W].astype(np.int16)
+                img = texture[y : y + H, x : x + W].astype(np.int16)
                 img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
                 log.write_image(f"/uav1/stereo/{side}/image_raw", stamp, img, cam.frame_id)
                 log.write_camera_info(f"/uav1/stereo/{side}/camera_info", stamp, cam)
@@ -86,8 +95,10 @@ def test_decode_throughput(logs_dir: Path) -> None:
     assert n_images == bare_read() == 120
     t_ours, t_bare = _best_of(cvslam_read), _best_of(bare_read)
     ours, bare = n_images / t_ours, n_images / t_bare
-    print(f"\n[bench] decode 752x480 mono8: cvslam {ours:8.0f} images/s | bare mcap iteration "
-          f"(no decoding) {bare:8.0f} images/s | ratio {ours / bare:.2f} | target >= 500")
+    print(
+        f"\n[bench] decode 752x480 mono8: cvslam {ours:8.0f} images/s | bare mcap iteration "
+        f"(no decoding) {bare:8.0f} images/s | ratio {ours / bare:.2f} | target >= 500"
+    )
     assert ours >= 500
 
 
@@ -105,8 +116,9 @@ _PEAK = textwrap.dedent("""
 
 
 def _peak_kib(path: Path, mode: str) -> tuple[int, int]:
-    out = subprocess.run([sys.executable, "-c", _PEAK, str(path), mode], check=True,
-                         capture_output=True, text=True).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", _PEAK, str(path), mode], check=True, capture_output=True, text=True
+    ).stdout.split()
     return int(out[0]), int(out[1])
 
 
@@ -115,9 +127,11 @@ def test_peak_memory_flat_with_log_length(logs_dir: Path) -> None:
     n_short, short = _peak_kib(logs_dir / "short.mcap", "read")
     n_long, long_ = _peak_kib(logs_dir / "long.mcap", "read")
     size_ratio = (logs_dir / "long.mcap").stat().st_size / (logs_dir / "short.mcap").stat().st_size
-    print(f"\n[bench] peak RSS: open only {base / 1024:.0f} MiB | short log ({n_short} records) "
-          f"{short / 1024:.0f} MiB | 10x log ({n_long} records, {size_ratio:.1f}x bytes) "
-          f"{long_ / 1024:.0f} MiB | long/short {long_ / short:.2f} | reading adds "
-          f"{(short - base) / 1024:.0f} vs {(long_ - base) / 1024:.0f} MiB")
+    print(
+        f"\n[bench] peak RSS: open only {base / 1024:.0f} MiB | short log ({n_short} records) "
+        f"{short / 1024:.0f} MiB | 10x log ({n_long} records, {size_ratio:.1f}x bytes) "
+        f"{long_ / 1024:.0f} MiB | long/short {long_ / short:.2f} | reading adds "
+        f"{(short - base) / 1024:.0f} vs {(long_ - base) / 1024:.0f} MiB"
+    )
     assert n_long > 9 * n_short
     assert long_ / short < 1.15

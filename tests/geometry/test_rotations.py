@@ -36,8 +36,9 @@ def test_euler_zyx_round_trip_and_yaw_meaning():
         C = euler_zyx_to_matrix(*rpy)
         np.testing.assert_allclose(matrix_to_euler_zyx(C), rpy, atol=1e-12)
     # yaw 90 degrees: body x (forward) points east (nav y)
-    np.testing.assert_allclose(euler_zyx_to_matrix(0, 0, np.pi / 2) @ [1, 0, 0], [0, 1, 0],
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        euler_zyx_to_matrix(0, 0, np.pi / 2) @ [1, 0, 0], [0, 1, 0], atol=1e-15
+    )
 
 
 def test_transform_inverse():

@@ -20,9 +20,15 @@ def _msg(arr, encoding, pad=0, big=False):
     h, w = arr.shape[:2]
     data = arr.astype(arr.dtype.newbyteorder(">" if big else "<")).tobytes()
     row = len(data) // h
-    rows = [data[i * row:(i + 1) * row] + b"\0" * pad for i in range(h)]
-    return SimpleNamespace(height=h, width=w, encoding=encoding, is_bigendian=int(big),
-                           step=row + pad, data=b"".join(rows))
+    rows = [data[i * row : (i + 1) * row] + b"\0" * pad for i in range(h)]
+    return SimpleNamespace(
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=int(big),
+        step=row + pad,
+        data=b"".join(rows),
+    )
 
 
 @pytest.mark.parametrize("pad", [0, 3])
@@ -55,12 +61,14 @@ def test_compressed_png_and_jpeg():
     yy, xx = np.mgrid[0:48, 0:64]
     big = np.dstack([xx * 4, yy * 5, 255 - xx * 3]).astype(np.uint8)  # smooth, distinct channels
     ok, jpg = cv2.imencode(".jpg", big, [cv2.IMWRITE_JPEG_QUALITY, 98])
-    out, _ = decode_compressed(SimpleNamespace(format="bgr8; jpeg compressed bgr8",
-                                               data=jpg.tobytes()))
+    out, _ = decode_compressed(
+        SimpleNamespace(format="bgr8; jpeg compressed bgr8", data=jpg.tobytes())
+    )
     assert out.shape == (48, 64, 3)
     assert np.abs(out.astype(int) - big).mean() < 3  # channels not swapped
-    out, _ = decode_compressed(SimpleNamespace(format="mono8; jpeg compressed mono8",
-                                               data=jpg.tobytes()))
+    out, _ = decode_compressed(
+        SimpleNamespace(format="mono8; jpeg compressed mono8", data=jpg.tobytes())
+    )
     assert out.ndim == 2
     with pytest.raises(ImageDecodeError, match="unknown compressed image format"):
         decode_compressed(SimpleNamespace(format="webp", data=b"x"))

@@ -14,8 +14,9 @@ from tests.synth import write_stereo_log
 
 
 def _logset(*paths, overrides=(), strict=True):
-    return LogSet([McapLogSource(p) for p in paths], load_config(overrides=overrides).logs,
-                  strict=strict)
+    return LogSet(
+        [McapLogSource(p) for p in paths], load_config(overrides=overrides).logs, strict=strict
+    )
 
 
 def test_records_round_trip_images_imu_and_ground_truth(tmp_path):
@@ -41,8 +42,9 @@ def test_records_round_trip_images_imu_and_ground_truth(tmp_path):
 
 
 def test_pairing_within_tolerance_and_unpaired_counts(tmp_path):
-    synth = write_stereo_log(tmp_path / "a.mcap", n_frames=10, right_offset_ns=1_500_000,
-                             drop_right=(3, 7))
+    synth = write_stereo_log(
+        tmp_path / "a.mcap", n_frames=10, right_offset_ns=1_500_000, drop_right=(3, 7)
+    )
     logs = _logset(synth.path)
     frames = [r for r in logs.records() if isinstance(r, StereoFrame)]
     assert len(frames) == 8
@@ -58,8 +60,9 @@ def test_pairing_within_tolerance_and_unpaired_counts(tmp_path):
 
 def test_two_logs_two_vehicles_merge_in_time_order(tmp_path):
     a = write_stereo_log(tmp_path / "a.mcap", vehicle="uav1", n_frames=5, seed=1)
-    b = write_stereo_log(tmp_path / "b.mcap", vehicle="uav2", n_frames=5, seed=2,
-                         t0_ns=1_025_000_000)
+    b = write_stereo_log(
+        tmp_path / "b.mcap", vehicle="uav2", n_frames=5, seed=2, t0_ns=1_025_000_000
+    )
     logs = _logset(a.path, b.path)
     assert sorted(logs.vehicles) == ["uav1", "uav2"]
     recs = list(logs.records())
@@ -73,8 +76,7 @@ def test_two_logs_two_vehicles_merge_in_time_order(tmp_path):
 
 
 def test_nan_imu_dropped_and_counted_backwards_reported(tmp_path):
-    synth = write_stereo_log(tmp_path / "a.mcap", n_frames=4, nan_imu=(3, 9),
-                             backwards_imu_at=20)
+    synth = write_stereo_log(tmp_path / "a.mcap", n_frames=4, nan_imu=(3, 9), backwards_imu_at=20)
     logs = _logset(synth.path)
     imu = [r for r in logs.records() if isinstance(r, ImuSample)]
     assert len(imu) == len(synth.imu)
@@ -107,8 +109,14 @@ def test_calibration_from_rig_config_when_no_camera_info(tmp_path):
     base = "logs.vehicles.uav1.rig"
     cam = "{width: 64, height: 48, fx: 50, fy: 50, cx: 32, cy: 24}"
     right_T = "[1,0,0,0.12, 0,1,0,0, 0,0,1,0, 0,0,0,1]"
-    logs = _logset(synth.path, overrides=[f"{base}.left={cam}", f"{base}.right={cam}",
-                                          f"{base}.right.T_body_cam={right_T}"])
+    logs = _logset(
+        synth.path,
+        overrides=[
+            f"{base}.left={cam}",
+            f"{base}.right={cam}",
+            f"{base}.right.T_body_cam={right_T}",
+        ],
+    )
     rig = logs.rig("uav1")
     assert rig.left.source.startswith("config")
     assert rig.baseline_m == pytest.approx(0.12)

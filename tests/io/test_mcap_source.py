@@ -32,24 +32,30 @@ def _rosbags_log(bag_dir, n_frames=6, seed=3):
     with Writer(bag_dir, version=9, storage_plugin=StoragePlugin.MCAP) as w:
         conns = {
             "left": w.add_connection("/r1/stereo/left/image_raw", Image.__msgtype__, typestore=TS),
-            "right": w.add_connection("/r1/stereo/right/image_raw", Image.__msgtype__,
-                                      typestore=TS),
-            "linfo": w.add_connection("/r1/stereo/left/camera_info", CameraInfo.__msgtype__,
-                                      typestore=TS),
-            "rinfo": w.add_connection("/r1/stereo/right/camera_info", CameraInfo.__msgtype__,
-                                      typestore=TS),
+            "right": w.add_connection(
+                "/r1/stereo/right/image_raw", Image.__msgtype__, typestore=TS
+            ),
+            "linfo": w.add_connection(
+                "/r1/stereo/left/camera_info", CameraInfo.__msgtype__, typestore=TS
+            ),
+            "rinfo": w.add_connection(
+                "/r1/stereo/right/camera_info", CameraInfo.__msgtype__, typestore=TS
+            ),
             "imu": w.add_connection("/r1/imu", Imu.__msgtype__, typestore=TS),
         }
         for i in range(n_frames * 10):
             t = 5_000_000_000 + i * 5_000_000
             hdr = Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id="r1/base_link")
             gyro, acc = rng.normal(size=3), rng.normal(size=3)
-            msg = Imu(header=hdr, orientation=Quat(x=0, y=0, z=0, w=1),
-                      orientation_covariance=np.zeros(9),
-                      angular_velocity=Vector3(x=gyro[0], y=gyro[1], z=gyro[2]),
-                      angular_velocity_covariance=np.zeros(9),
-                      linear_acceleration=Vector3(x=acc[0], y=acc[1], z=acc[2]),
-                      linear_acceleration_covariance=np.zeros(9))
+            msg = Imu(
+                header=hdr,
+                orientation=Quat(x=0, y=0, z=0, w=1),
+                orientation_covariance=np.zeros(9),
+                angular_velocity=Vector3(x=gyro[0], y=gyro[1], z=gyro[2]),
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=Vector3(x=acc[0], y=acc[1], z=acc[2]),
+                linear_acceleration_covariance=np.zeros(9),
+            )
             w.write(conns["imu"], t, TS.serialize_cdr(msg, Imu.__msgtype__))
             written["imu"].append((t, gyro, acc))
             if i % 10:
@@ -59,21 +65,36 @@ def _rosbags_log(bag_dir, n_frames=6, seed=3):
                 img = rng.integers(0, 256, size=shape, dtype=np.uint8)
                 frame = f"r1/{side}_optical"
                 hdr = Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id=frame)
-                msg = Image(header=hdr, height=30, width=40, encoding=enc, is_bigendian=0,
-                            step=40 * img.itemsize * (1 if img.ndim == 2 else 3),
-                            data=img.reshape(-1))
+                msg = Image(
+                    header=hdr,
+                    height=30,
+                    width=40,
+                    encoding=enc,
+                    is_bigendian=0,
+                    step=40 * img.itemsize * (1 if img.ndim == 2 else 3),
+                    data=img.reshape(-1),
+                )
                 w.write(conns[side], t, TS.serialize_cdr(msg, Image.__msgtype__))
                 written[side].append((t, img))
                 tx = -20.0 * 0.2 if side == "right" else 0.0
-                info = CameraInfo(header=hdr, height=30, width=40, distortion_model="plumb_bob",
-                                  d=np.zeros(5), k=np.array([20.0, 0, 20, 0, 20, 15, 0, 0, 1]),
-                                  r=np.eye(3).reshape(9),
-                                  p=np.array([20.0, 0, 20, tx, 0, 20, 15, 0, 0, 0, 1, 0]),
-                                  binning_x=0, binning_y=0,
-                                  roi=ROI(x_offset=0, y_offset=0, height=0, width=0,
-                                          do_rectify=False))
-                w.write(conns["linfo" if side == "left" else "rinfo"], t,
-                        TS.serialize_cdr(info, CameraInfo.__msgtype__))
+                info = CameraInfo(
+                    header=hdr,
+                    height=30,
+                    width=40,
+                    distortion_model="plumb_bob",
+                    d=np.zeros(5),
+                    k=np.array([20.0, 0, 20, 0, 20, 15, 0, 0, 1]),
+                    r=np.eye(3).reshape(9),
+                    p=np.array([20.0, 0, 20, tx, 0, 20, 15, 0, 0, 0, 1, 0]),
+                    binning_x=0,
+                    binning_y=0,
+                    roi=ROI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+                )
+                w.write(
+                    conns["linfo" if side == "left" else "rinfo"],
+                    t,
+                    TS.serialize_cdr(info, CameraInfo.__msgtype__),
+                )
     (mcap_file,) = sorted(bag_dir.glob("*.mcap"))
     return mcap_file, written
 
@@ -121,16 +142,19 @@ def test_log_written_by_cvslam_reads_with_rosbags(tmp_path):
 
 def test_real_rosbag2_odometry(shared_data):
     path = shared_data / "ros2_odometry" / "nav2_turtlebot.mcap"
-    cfg = load_config(overrides=["logs.vehicles.tb3.kind=ugv",
-                                 "logs.vehicles.tb3.topics.odom=/odom"]).logs
+    cfg = load_config(
+        overrides=["logs.vehicles.tb3.kind=ugv", "logs.vehicles.tb3.topics.odom=/odom"]
+    ).logs
     logs = LogSet([McapLogSource(path)], cfg)
     odom = list(logs.records())
     assert len(odom) == 2639
     # stamps exactly as rosbags decodes them from the same file
     with AnyReader([path]) as reader:
         conns = [c for c in reader.connections if c.topic == "/odom"]
-        ref = [stamp_ns_of(reader.deserialize(raw, c.msgtype))
-                     for c, _, raw in reader.messages(connections=conns)]
+        ref = [
+            stamp_ns_of(reader.deserialize(raw, c.msgtype))
+            for c, _, raw in reader.messages(connections=conns)
+        ]
     assert [r.stamp_ns for r in odom] == ref
     assert all(b > a for a, b in itertools.pairwise(ref))
     assert odom[0].frame_id == "odom" and odom[0].child_frame_id == "base_link"
@@ -148,8 +172,9 @@ def test_missing_file_directory_and_not_mcap(tmp_path):
 
 
 def test_truncated_mid_chunk_reads_prefix_with_warning(tmp_path):
-    synth = write_stereo_log(tmp_path / "full.mcap", n_frames=40, size=(160, 120),
-                             chunk_size=64 * 1024)
+    synth = write_stereo_log(
+        tmp_path / "full.mcap", n_frames=40, size=(160, 120), chunk_size=64 * 1024
+    )
     data = synth.path.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * 0.6)])
@@ -180,18 +205,30 @@ def test_ros1_bag_converted_with_rosbags_reads(tmp_path):
         conn = w.add_connection("/r/imu", Imu.__msgtype__, typestore=ts1)
         for i in range(20):
             t = 10**9 + i * 5_000_000
-            msg = Imu(header=Header(seq=i, stamp=Time(sec=t // 10**9, nanosec=t % 10**9),
-                                    frame_id="r"),
-                      orientation=Quat(x=0, y=0, z=0, w=1), orientation_covariance=np.zeros(9),
-                      angular_velocity=V3(x=0.01 * i, y=0, z=0),
-                      angular_velocity_covariance=np.zeros(9),
-                      linear_acceleration=V3(x=0, y=0, z=9.81),
-                      linear_acceleration_covariance=np.zeros(9))
+            msg = Imu(
+                header=Header(seq=i, stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id="r"),
+                orientation=Quat(x=0, y=0, z=0, w=1),
+                orientation_covariance=np.zeros(9),
+                angular_velocity=V3(x=0.01 * i, y=0, z=0),
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=V3(x=0, y=0, z=9.81),
+                linear_acceleration_covariance=np.zeros(9),
+            )
             w.write(conn, t, ts1.serialize_ros1(msg, Imu.__msgtype__))
     convert = Path(sys.executable).with_name("rosbags-convert")
-    subprocess.run([str(convert), "--src", str(tmp_path / "in.bag"), "--dst",
-                    str(tmp_path / "out"), "--dst-storage", "mcap"], check=True,
-                   capture_output=True)
+    subprocess.run(
+        [
+            str(convert),
+            "--src",
+            str(tmp_path / "in.bag"),
+            "--dst",
+            str(tmp_path / "out"),
+            "--dst-storage",
+            "mcap",
+        ],
+        check=True,
+        capture_output=True,
+    )
     (mcap_file,) = (tmp_path / "out").glob("*.mcap")
     logs = LogSet([McapLogSource(mcap_file)], load_config().logs)
     imu = list(logs.records())
