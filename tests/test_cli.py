@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -217,6 +218,18 @@ def test_import_euroc_then_info(cvslam, shared_data, tmp_path):
     assert report["problems"] == []
     md = report["logs"][0]["metadata"]["cvslam.import"]
     assert md["nav_frame"] == "NED" and md["dataset"] == "euroc"
+    # another tool (rosbags) opens the imported log with its standard ROS 2 schemas
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([out]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        conn = next(c for c in reader.connections if c.topic == "/uav1/stereo/left/image_raw")
+        _, _, raw = next(iter(reader.messages(connections=[conn])))
+        first = reader.deserialize(raw, conn.msgtype)
+    assert counts["/uav1/stereo/left/image_raw"] == 95 and counts["/uav1/imu"] == 1141
+    png = sorted((shared_data / "euroc_v101_micro/mav0/cam0/data").glob("*.png"))[0]
+    expected = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+    np.testing.assert_array_equal(np.asarray(first.data).reshape(480, 752), expected)
 
 
 def test_import_kitti_then_info(cvslam, shared_data, tmp_path):
