@@ -26,6 +26,7 @@ import yaml
 
 from cvslam_cli.errors import ConfigError
 
+IDENTITY_4X4: tuple[float, ...] = tuple(1.0 if i % 5 == 0 else 0.0 for i in range(16))
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
 
 
@@ -76,24 +77,7 @@ class CameraConfig:
     cy: float = 0.0
     distortion_model: Literal["plumb_bob", "equidistant", "none"] = "none"
     distortion: tuple[float, ...] = ()
-    T_body_cam: tuple[float, ...] = (
-        1.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-    )
+    T_body_cam: tuple[float, ...] = IDENTITY_4X4
 
     @property
     def configured(self) -> bool:

@@ -126,18 +126,13 @@ class McapLogSource:
         self._topics[info.topic] = info
 
     def _scan_channels(self) -> list[tuple[Channel, Schema | None, int]]:
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
+        found: dict[int, tuple[Channel, Schema | None]] = {}
         counts: dict[int, int] = {}
         with self.path.open("rb") as f:
-            for rec in self._stream_records(f, warn=False):
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Message):
-                    counts[rec.channel_id] = counts.get(rec.channel_id, 0) + 1
-        return [(ch, schemas.get(ch.schema_id), counts.get(cid, 0)) for cid, ch in channels.items()]
+            for schema, channel, _ in self._stream_messages(f, warn=False):
+                found[channel.id] = (channel, schema)
+                counts[channel.id] = counts.get(channel.id, 0) + 1
+        return [(ch, schema, counts[cid]) for cid, (ch, schema) in found.items()]
 
     def metadata(self) -> dict[str, dict[str, str]]:
         if self._metadata is None:
@@ -153,31 +148,24 @@ class McapLogSource:
     def messages(self, topics: Collection[str] | None = None) -> Iterator[RawMessage]:
         """Decoded messages of `topics` (all when None), in log-time order when indexed."""
         wanted = None if topics is None else set(topics)
+        if wanted is not None and not wanted:
+            return
         decoders: dict[int, Any] = {}
         with self.path.open("rb") as f:
             if self._indexed:
                 reader = SeekingReader(f)
                 try:
                     stream = reader.iter_messages(
-                        topics=list(wanted) if wanted else None, log_time_order=True
+                        topics=None if wanted is None else list(wanted), log_time_order=True
                     )
                     for schema, channel, message in stream:
                         yield self._decode(schema, channel, message, decoders)
                 except McapError as exc:
                     raise LogError(f"{self.name}: damaged MCAP data ({exc})") from None
             else:
-                schemas: dict[int, Schema] = {}
-                channels: dict[int, Channel] = {}
-                for rec in self._stream_records(f, warn=True):
-                    if isinstance(rec, Schema):
-                        schemas[rec.id] = rec
-                    elif isinstance(rec, Channel):
-                        channels[rec.id] = rec
-                    elif isinstance(rec, Message):
-                        ch = channels.get(rec.channel_id)
-                        if ch is None or (wanted is not None and ch.topic not in wanted):
-                            continue
-                        yield self._decode(schemas.get(ch.schema_id), ch, rec, decoders)
+                for schema, channel, message in self._stream_messages(f, warn=True):
+                    if wanted is None or channel.topic in wanted:
+                        yield self._decode(schema, channel, message, decoders)
 
     def _decode(
         self, schema: Schema | None, channel: Channel, message: Message, decoders: dict[int, Any]
@@ -209,6 +197,21 @@ class McapLogSource:
                 f"{message.log_time} cannot be decoded ({exc})"
             ) from None
         return RawMessage(channel.topic, schema.name if schema else "", message.log_time, msg)
+
+    def _stream_messages(
+        self, f: BinaryIO, *, warn: bool
+    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
+        """(schema, channel, message) front to back, for files with no usable summary."""
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        for rec in self._stream_records(f, warn=warn):
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Message) and rec.channel_id in channels:
+                channel = channels[rec.channel_id]
+                yield schemas.get(channel.schema_id), channel, rec
 
     def _stream_records(self, f: BinaryIO, *, warn: bool) -> Iterator[Any]:
         """Records front to back; stops at the first damaged one with a warning."""
