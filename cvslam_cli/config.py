@@ -30,7 +30,7 @@ IDENTITY_4X4: tuple[float, ...] = tuple(1.0 if i % 5 == 0 else 0.0 for i in rang
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
 
 
-def _opt(
+def opt(
     default: Any, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False
 ) -> Any:
     """A dataclass field with an optional numeric range (`lo`, `hi`; `lo_open`: lo excluded)."""
@@ -69,8 +69,8 @@ class CameraConfig:
     optical-frame coordinates to body coordinates. `fx <= 0` means "not configured".
     """
 
-    width: int = _opt(0, lo=0)
-    height: int = _opt(0, lo=0)
+    width: int = opt(0, lo=0)
+    height: int = opt(0, lo=0)
     fx: float = 0.0
     fy: float = 0.0
     cx: float = 0.0
@@ -89,32 +89,32 @@ class RigConfig:
     """Stereo rig of one vehicle: fallback calibration and TF frame names."""
 
     body_frame: str = "{vehicle}/base_link"
-    left: CameraConfig = _opt(CameraConfig())
-    right: CameraConfig = _opt(CameraConfig())
+    left: CameraConfig = opt(CameraConfig())
+    right: CameraConfig = opt(CameraConfig())
 
 
 @dataclass(frozen=True)
 class VehicleConfig:
     kind: Literal["uav", "ugv"] = "uav"
-    topics: TopicMap = _opt(TopicMap())
-    rig: RigConfig = _opt(RigConfig())
+    topics: TopicMap = opt(TopicMap())
+    rig: RigConfig = opt(RigConfig())
 
 
 @dataclass(frozen=True)
 class LogsConfig:
     """How logs are read and split into vehicles."""
 
-    vehicles: dict[str, VehicleConfig] = _opt({})
-    vehicle_defaults: VehicleConfig = _opt(VehicleConfig())
+    vehicles: dict[str, VehicleConfig] = opt({})
+    vehicle_defaults: VehicleConfig = opt(VehicleConfig())
     tf_static_topic: str = "/tf_static"
-    stereo_pair_tolerance_ms: float = _opt(2.0, lo=0.0)
-    reorder_window_ms: float = _opt(100.0, lo=0.0)
-    gap_factor: float = _opt(3.0, lo=1.0, lo_open=True)
+    stereo_pair_tolerance_ms: float = opt(2.0, lo=0.0)
+    reorder_window_ms: float = opt(100.0, lo=0.0)
+    gap_factor: float = opt(3.0, lo=1.0, lo_open=True)
 
 
 @dataclass(frozen=True)
 class Config:
-    logs: LogsConfig = _opt(LogsConfig())
+    logs: LogsConfig = opt(LogsConfig())
 
 
 # --------------------------------------------------------------------------- building
@@ -159,7 +159,7 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
     if dataclasses.is_dataclass(tp):
         if not isinstance(raw, Mapping):
             _fail(source, path, "a mapping", raw)
-        return _build(tp, raw, path, source)
+        return build_dataclass(tp, raw, path, source)
     if origin is Literal:
         if raw not in typing.get_args(tp):
             _fail(source, path, _type_name(tp), raw)
@@ -201,7 +201,7 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
     raise TypeError(f"config type {tp!r} at {path} is not supported")  # a bug in the schema
 
 
-def _build(cls: type, raw: Mapping[str, Any], path: str, source: str) -> Any:
+def build_dataclass(cls: type, raw: Mapping[str, Any], path: str, source: str) -> Any:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for key in raw:
@@ -218,11 +218,11 @@ def _build(cls: type, raw: Mapping[str, Any], path: str, source: str) -> Any:
     return cls(**kwargs)
 
 
-def _deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     out = dict(base)
     for k, v in over.items():
         if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
-            out[k] = _deep_merge(out[k], v)
+            out[k] = deep_merge(out[k], v)
         else:
             out[k] = copy.deepcopy(v)
     return out
@@ -237,7 +237,7 @@ def _expand_vehicles(raw: Mapping[str, Any]) -> dict[str, Any]:
     if not isinstance(defaults, Mapping):
         return dict(raw)
     vehicles = {
-        name: _deep_merge(defaults, v) if isinstance(v, Mapping) else v
+        name: deep_merge(defaults, v) if isinstance(v, Mapping) else v
         for name, v in logs["vehicles"].items()
     }
     return {**raw, "logs": {**logs, "vehicles": vehicles}}
@@ -313,10 +313,11 @@ def load_config(
         parts, value = parse_override(text)
         sources.append((f"--set {text}", _nest(parts, value)))
     for name, raw in sources:
-        _build(Config, _expand_vehicles(raw), "", name)  # validate alone, so errors name it
-        merged = _deep_merge(merged, raw)
+        # validate each source alone, so that an error names it
+        build_dataclass(Config, _expand_vehicles(raw), "", name)
+        merged = deep_merge(merged, raw)
     merged = _expand_vehicles(merged)
-    return _build(Config, merged, "", "config")
+    return build_dataclass(Config, merged, "", "config")
 
 
 def dump_config(cfg: Config) -> str:

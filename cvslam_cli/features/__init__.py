@@ -1,0 +1,1 @@
+"""Adaptive SIFT, stereo-constrained matching, triangulation and the feature format."""

@@ -1,0 +1,77 @@
+"""Reading and writing feature files (`<run>/features/<vehicle>.npz`).
+
+An uncompressed NumPy .npz archive: one array per `FeatureSet` field, the rig as `rig_*`
+arrays, and `format`, `version`, `vehicle`, `meta_json` entries. Loading is a handful of
+`np.load` reads (no per-frame parsing). Written to a temporary name and renamed when
+complete. A file of another format version is refused with a clear message.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cvslam_cli.errors import CvslamError
+from cvslam_cli.features.format import FORMAT_NAME, FORMAT_VERSION, FeatureSet, RigCalibration
+
+_RIG_FIELDS = ("K", "D", "T_body_cam", "size_px")
+
+
+def save_features(fs: FeatureSet, path: Path, meta: dict[str, Any]) -> None:
+    """Write `fs` (validated) with `meta` (JSON-serialisable provenance) to `path`."""
+    fs.validate()
+    arrays: dict[str, Any] = {
+        "format": np.array(FORMAT_NAME),
+        "version": np.array(FORMAT_VERSION),
+        "vehicle": np.array(fs.vehicle),
+        "meta_json": np.array(json.dumps(meta, sort_keys=True)),
+        "rig_distortion_model": np.array(fs.rig.distortion_model),
+    }
+    for name in _RIG_FIELDS:
+        arrays[f"rig_{name}"] = getattr(fs.rig, name)
+    for f in fields(fs):
+        if f.name not in ("vehicle", "rig"):
+            arrays[f.name] = getattr(fs, f.name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    with tmp.open("wb") as fh:
+        np.savez(fh, **arrays)
+    os.replace(tmp, path)
+
+
+def load_features(path: Path) -> tuple[FeatureSet, dict[str, Any]]:
+    """Read a feature file; `CvslamError` naming the file for anything unusable."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except FileNotFoundError:
+        raise CvslamError(f"{path}: feature file not found") from None
+    except (OSError, ValueError) as exc:
+        raise CvslamError(f"{path}: not a readable feature file ({exc})") from None
+    fmt = str(data.get("format", ""))
+    if fmt != FORMAT_NAME:
+        raise CvslamError(f"{path}: not a cvslam feature file (format {fmt or 'missing'!r})")
+    version = int(data.get("version", -1))
+    if version != FORMAT_VERSION:
+        raise CvslamError(
+            f"{path}: feature format version {version}, this cvslam reads "
+            f"version {FORMAT_VERSION}; run `cvslam extract --force` again"
+        )
+    try:
+        rig = RigCalibration(
+            distortion_model=str(data["rig_distortion_model"]),
+            **{name: data[f"rig_{name}"] for name in _RIG_FIELDS},
+        )
+        kwargs = {
+            f.name: data[f.name] for f in fields(FeatureSet) if f.name not in ("vehicle", "rig")
+        }
+        fs = FeatureSet(vehicle=str(data["vehicle"]), rig=rig, **kwargs)
+        fs.validate()
+    except (KeyError, ValueError) as exc:
+        raise CvslamError(f"{path}: corrupt feature file ({exc})") from None
+    return fs, json.loads(str(data["meta_json"]))
