@@ -133,7 +133,9 @@ def _type_name(tp: Any) -> str:
     if tp is str:
         return "a string"
     if origin is tuple:
-        return f"a list of {_type_name(typing.get_args(tp)[0])}s"
+        args = typing.get_args(tp)
+        count = "" if len(args) == 2 and args[1] is Ellipsis else f"{len(args)} "
+        return f"a list of {count}{_type_name(args[0]).removeprefix('a ').removeprefix('an ')}s"
     if origin is dict:
         return "a mapping"
     if dataclasses.is_dataclass(tp):
@@ -172,8 +174,15 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
     if origin is tuple:
         if not isinstance(raw, (list, tuple)):
             _fail(source, path, _type_name(tp), raw)
-        elem = typing.get_args(tp)[0]
-        return tuple(_convert(elem, v, f"{path}[{i}]", source, {}) for i, v in enumerate(raw))
+        args = typing.get_args(tp)
+        variable = len(args) == 2 and args[1] is Ellipsis
+        if not variable and len(raw) != len(args):
+            _fail(source, path, _type_name(tp), raw)
+        elems = [args[0]] * len(raw) if variable else list(args)
+        return tuple(
+            _convert(e, v, f"{path}[{i}]", source, {})
+            for i, (e, v) in enumerate(zip(elems, raw, strict=True))
+        )
     if tp is bool:
         if not isinstance(raw, bool):
             _fail(source, path, "true or false", raw)

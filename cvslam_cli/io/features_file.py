@@ -3,13 +3,12 @@
 An uncompressed NumPy .npz archive: one array per `FeatureSet` field, the rig as `rig_*`
 arrays, and `format`, `version`, `vehicle`, `meta_json` entries. Loading is a handful of
 `np.load` reads (no per-frame parsing). Written to a temporary name and renamed when
-complete. A file of another format version is refused with a clear message.
+complete, byte-reproducible. A file of another format version is refused with a clear message.
 """
 
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ import numpy as np
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.features.format import FORMAT_NAME, FORMAT_VERSION, FeatureSet, RigCalibration
+from cvslam_cli.io.npz import save_npz
 
 _RIG_FIELDS = ("K", "D", "T_body_cam", "size_px")
 
@@ -37,11 +37,7 @@ def save_features(fs: FeatureSet, path: Path, meta: dict[str, Any]) -> None:
     for f in fields(fs):
         if f.name not in ("vehicle", "rig"):
             arrays[f.name] = getattr(fs, f.name)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    with tmp.open("wb") as fh:
-        np.savez(fh, **arrays)
-    os.replace(tmp, path)
+    save_npz(path, arrays)
 
 
 def load_features(path: Path) -> tuple[FeatureSet, dict[str, Any]]:

@@ -101,3 +101,12 @@ def test_other_version_and_corrupt_files_refused(tmp_path):
     (tmp_path / "junk.npz").write_text("junk")
     with pytest.raises(CvslamError, match="not a readable feature file"):
         load_features(tmp_path / "junk.npz")
+
+
+def test_files_are_byte_reproducible(tmp_path):
+    import time
+
+    save_features(build(), tmp_path / "a.npz", {"x": 1})
+    time.sleep(1.1)  # numpy.savez would stamp a different time into the zip
+    save_features(build(), tmp_path / "b.npz", {"x": 1})
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
