@@ -1,9 +1,11 @@
-"""Byte-reproducible .npz archives.
+"""Byte-reproducible .npz archives, written whole or member by member.
 
 `numpy.savez` stamps every member with the current wall-clock time, so two runs with the
-same inputs differ byte for byte. `save_npz` writes the same format (a zip of .npy members,
-readable by `numpy.load`) with a fixed member timestamp and sorted names, so the same
-arrays always give the same bytes. Written to `<path>.partial`, renamed when complete.
+same inputs differ byte for byte. These writers produce the same format (a zip of .npy
+members, readable by `numpy.load`) with a fixed member timestamp, so the same arrays in the
+same order always give the same bytes. `NpzWriter` adds members one at a time (memory stays
+bounded for per-frame data); the archive is written to `<path>.partial` and renamed only
+when closed without error.
 """
 
 from __future__ import annotations
@@ -13,26 +15,47 @@ import os
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
+from types import TracebackType
 
 import numpy as np
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
+class NpzWriter:
+    def __init__(self, path: Path, *, compress: bool = False) -> None:
+        self.path = path
+        self.tmp = path.with_name(path.name + ".partial")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+        self._zip = zipfile.ZipFile(self.tmp, "w", compression=self._method, allowZip64=True)
+
+    def add(self, name: str, array: np.ndarray) -> None:
+        buf = io.BytesIO()
+        np.lib.format.write_array(buf, np.asanyarray(array), allow_pickle=False)
+        info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
+        info.compress_type = self._method
+        info.external_attr = 0o644 << 16
+        self._zip.writestr(info, buf.getvalue())
+
+    def __enter__(self) -> NpzWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self._zip.close()
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+
+
 def save_npz(path: Path, arrays: Mapping[str, np.ndarray], *, compress: bool = False) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    try:
-        with zipfile.ZipFile(tmp, "w", compression=method, allowZip64=True) as zf:
-            for name in sorted(arrays):
-                buf = io.BytesIO()
-                np.lib.format.write_array(buf, np.asanyarray(arrays[name]), allow_pickle=False)
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-                info.compress_type = method
-                info.external_attr = 0o644 << 16
-                zf.writestr(info, buf.getvalue())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    """Write `arrays` (members in sorted name order)."""
+    with NpzWriter(path, compress=compress) as w:
+        for name in sorted(arrays):
+            w.add(name, arrays[name])

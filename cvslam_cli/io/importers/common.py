@@ -35,6 +35,7 @@ from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
+from cvslam_cli.io.trajectory import PoseTable
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -88,19 +89,6 @@ class ImuTable:
     accel_m_s2: F64
     gyro_var: float = 0.0
     accel_var: float = 0.0
-
-    def __len__(self) -> int:
-        return len(self.stamps_ns)
-
-
-@dataclass(frozen=True, eq=False)
-class PoseTable:
-    """Poses `T_frame_body`: `stamps_ns` (N,) increasing, `p_m` (N, 3), `q_xyzw` (N, 4)
-    rotating body coordinates into the table's frame."""
-
-    stamps_ns: I64
-    p_m: F64
-    q_xyzw: F64
 
     def __len__(self) -> int:
         return len(self.stamps_ns)

@@ -1,0 +1,1 @@
+"""Estimation: motion models, observation model, EKF/NH∞, map, cooperation (`fuse`)."""

@@ -1,0 +1,1 @@
+"""Simulation: ground-truth motion, sensors, and scenes for `cvslam simulate`."""
