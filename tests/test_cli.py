@@ -250,3 +250,29 @@ def test_import_bad_folder_is_one_line(cvslam, tmp_path):
     assert res.code == 1 and "Traceback" not in res.err
     assert len(res.err.strip().splitlines()) == 1 and "nowhere" in res.err
     assert not list(tmp_path.glob("k.*"))
+
+
+def test_simulate_command(cvslam, tmp_path):
+    from tests.sim.test_stage import small_uav_scenario
+
+    scenario = small_uav_scenario(tmp_path)
+    out = tmp_path / "sim"
+    res = cvslam(
+        "simulate", scenario, "-o", out, "--set", "mode=landmarks", "--seed", "5", "--duration", "3"
+    )
+    assert res.code == 0, res.err
+    assert "uav1:" in res.err and "landmark observations" in res.err
+    assert (out / "features" / "uav1.npz").is_file()
+    text = cvslam("info", out / "uav1.mcap", out / "uav2.mcap").out
+    assert "vehicle uav1" in text and "vehicle uav2" in text
+    res = cvslam("simulate", scenario, "-o", out, "--set", "mode=landmarks")
+    assert res.code == 1 and "already exists" in res.err and "--force" in res.err
+    res = cvslam("simulate", scenario, "-o", tmp_path / "x", "--set", "vehicles.uav1.speed=3")
+    assert res.code == 1
+    assert res.err.strip().endswith(
+        "vehicles.uav1.speed: unknown key (expected one of: kind, "
+        "waypoints_nav_m, closed, speed_m_s, start_s, imu_rate_hz, "
+        "imu, odometry_rate_hz, odometry, camera, ground_truth_at)"
+    )
+    res = cvslam("simulate", tmp_path / "missing.yaml", "-o", tmp_path / "y")
+    assert res.code == 1 and "missing.yaml: config file not found" in res.err

@@ -7,6 +7,7 @@ so an interrupted import or simulation never leaves a file that looks complete.
 from __future__ import annotations
 
 import os
+import struct
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -60,6 +61,65 @@ def camera_info_fields(cam: CameraModel, stamp_ns: int) -> dict[str, Any]:
     }
 
 
+_IMU_TAIL = struct.Struct("<37d")
+
+
+def imu_cdr(
+    stamp_ns: int,
+    frame_id: str,
+    gyro_rad_s: Any,
+    accel_m_s2: Any,
+    gyro_var: float,
+    accel_var: float,
+) -> bytes:
+    """CDR (little-endian) encoding of a sensor_msgs/msg/Imu with no orientation, the same
+    bytes mcap-ros2-support produces (checked in the tests), about 50x faster."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    name = frame_id.encode() + b"\0"
+    head = struct.pack("<4siII", b"\0\x01\0\0", sec, nanosec, len(name)) + name
+    head += b"\0" * (-(len(head) - 4) % 8)  # float64 fields align to 8 (after encapsulation)
+    g, a = np.asarray(gyro_rad_s, dtype=float), np.asarray(accel_m_s2, dtype=float)
+    return head + _IMU_TAIL.pack(
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+        -1.0,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+        g[0],
+        g[1],
+        g[2],
+        gyro_var,
+        0,
+        0,
+        0,
+        gyro_var,
+        0,
+        0,
+        0,
+        gyro_var,
+        a[0],
+        a[1],
+        a[2],
+        accel_var,
+        0,
+        0,
+        0,
+        accel_var,
+        0,
+        0,
+        0,
+        accel_var,
+    )
+
+
 class LogWriter:
     """A ROS 2 MCAP being written. Use as a context manager."""
 
@@ -81,6 +141,7 @@ class LogWriter:
         }[compression]
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
         self._schemas: dict[str, Schema] = {}
+        self._raw_channels: dict[str, int] = {}
         self.count = 0
 
     def __enter__(self) -> LogWriter:
@@ -116,13 +177,18 @@ class LogWriter:
         stamp_ns: int,
         log_time_ns: int | None = None,
     ) -> None:
+        t = int(stamp_ns if log_time_ns is None else log_time_ns)
+        self._writer.write_message(
+            topic, self._schema(datatype), fields, log_time=t, publish_time=t
+        )
+        self.count += 1
+
+    def _schema(self, datatype: str) -> Schema:
         schema = self._schemas.get(datatype)
         if schema is None:
             schema = self._writer.register_msgdef(datatype, msgdef_text(datatype))
             self._schemas[datatype] = schema
-        t = int(stamp_ns if log_time_ns is None else log_time_ns)
-        self._writer.write_message(topic, schema, fields, log_time=t, publish_time=t)
-        self.count += 1
+        return schema
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         self._writer._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
@@ -153,6 +219,24 @@ class LogWriter:
     def write_camera_info(self, topic: str, stamp_ns: int, cam: CameraModel) -> None:
         self.write(topic, "sensor_msgs/msg/CameraInfo", camera_info_fields(cam, stamp_ns), stamp_ns)
 
+    def write_raw(
+        self,
+        topic: str,
+        datatype: str,
+        payload: bytes,
+        stamp_ns: int,
+        log_time_ns: int | None = None,
+    ) -> None:
+        """Write an already CDR-encoded message (fast paths for high-rate topics)."""
+        schema = self._schema(datatype)
+        channel = self._raw_channels.get(topic)
+        if channel is None:
+            channel = self._writer._writer.register_channel(topic, "cdr", schema.id)
+            self._raw_channels[topic] = channel
+        t = int(stamp_ns if log_time_ns is None else log_time_ns)
+        self._writer._writer.add_message(channel, log_time=t, data=payload, publish_time=t)
+        self.count += 1
+
     def write_imu(
         self,
         topic: str,
@@ -164,19 +248,11 @@ class LogWriter:
         accel_var: float = 0.0,
         log_time_ns: int | None = None,
     ) -> None:
-        cov_unknown = [-1.0] + [0.0] * 8  # orientation not provided (REP 145)
-        self.write(
+        """sensor_msgs/msg/Imu without orientation (covariance[0] = -1, REP 145)."""
+        self.write_raw(
             topic,
             "sensor_msgs/msg/Imu",
-            {
-                "header": header(stamp_ns, frame_id),
-                "orientation": _quat([0, 0, 0, 1]),
-                "orientation_covariance": cov_unknown,
-                "angular_velocity": _vec(gyro_rad_s),
-                "angular_velocity_covariance": list((np.eye(3) * gyro_var).reshape(9)),
-                "linear_acceleration": _vec(accel_m_s2),
-                "linear_acceleration_covariance": list((np.eye(3) * accel_var).reshape(9)),
-            },
+            imu_cdr(stamp_ns, frame_id, gyro_rad_s, accel_m_s2, gyro_var, accel_var),
             stamp_ns,
             log_time_ns,
         )

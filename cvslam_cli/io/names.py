@@ -23,18 +23,9 @@ class VehicleNames:
 
     vehicle: str
     topics: TopicMap
-
-    @property
-    def body_frame(self) -> str:
-        return RigConfig().body_frame.replace("{vehicle}", self.vehicle)
-
-    @property
-    def left_frame(self) -> str:
-        return f"{self.vehicle}/left_camera_optical"
-
-    @property
-    def right_frame(self) -> str:
-        return f"{self.vehicle}/right_camera_optical"
+    body_frame: str
+    left_frame: str
+    right_frame: str
 
 
 def vehicle_names(vehicle: str, error: type[CvslamError] = CvslamError) -> VehicleNames:
@@ -44,4 +35,10 @@ def vehicle_names(vehicle: str, error: type[CvslamError] = CvslamError) -> Vehic
             f"vehicle name {vehicle!r}: expected letters, digits and underscores "
             "only (it becomes part of the topic names)"
         )
-    return VehicleNames(vehicle, TopicMap().resolve(vehicle))
+    return VehicleNames(
+        vehicle,
+        TopicMap().resolve(vehicle),
+        body_frame=RigConfig().body_frame.replace("{vehicle}", vehicle),
+        left_frame=f"{vehicle}/left_camera_optical",
+        right_frame=f"{vehicle}/right_camera_optical",
+    )

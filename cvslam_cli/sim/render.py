@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -42,8 +43,12 @@ def photometric(
     rng: np.random.Generator,
 ) -> NDArray[np.uint8]:
     """Recorded 8-bit image: 255 * (gain * radiance + offset) + N(0, noise_sigma) grey levels,
-    clipped and rounded."""
-    img = (255.0 * gain) * radiance + 255.0 * offset
+    rounded and clipped. The noise comes from OpenCV's generator (3x faster than numpy's for
+    a full image), seeded from `rng` so the result is still determined by it."""
+    img = radiance * np.float32(255.0 * gain) + np.float32(255.0 * offset)
     if noise_sigma > 0:
-        img = img + rng.normal(0.0, noise_sigma, radiance.shape).astype(np.float32)
+        noise = np.empty(radiance.shape, np.float32)
+        cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+        cv2.randn(noise, 0.0, float(noise_sigma))
+        img += noise
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)

@@ -42,20 +42,19 @@ def fractal_noise(
 
 
 def smooth_texture(shape: tuple[int, int], rng: np.random.Generator, *, px_per_m: float) -> F32:
-    """Sea/desert-like: dunes tens of metres across, a faint grain and sparse low-contrast
-    rocks or shrubs (about one per 150 m^2): few, weak features."""
+    """Sea/desert-like: dunes tens of metres across, a faint grain, and sparse rocks or
+    shrubs (about one per 60 m^2, 0.3-2 m across, low contrast): few, weak features."""
     h, w = shape
     dunes = fractal_noise(shape, rng, base_px=40.0 * px_per_m, octaves=5, persistence=0.55)
     grain = fractal_noise(shape, rng, base_px=max(1.0, 0.6 * px_per_m), octaves=2)
     img = (0.45 + 0.35 * (dunes - 0.5) + 0.06 * (grain - 0.5)).astype(np.float32)
-    n_rocks = int(h * w / (150.0 * px_per_m * px_per_m))
+    n_rocks = int(h * w / (60.0 * px_per_m * px_per_m))
     xs, ys = rng.uniform(0, w, n_rocks), rng.uniform(0, h, n_rocks)
-    radii = rng.uniform(0.3, 1.2, n_rocks) * px_per_m
-    shades = rng.uniform(-0.12, 0.08, n_rocks)
+    radii = rng.uniform(0.15, 1.0, n_rocks) * px_per_m
+    shades = rng.uniform(-0.18, 0.10, n_rocks)
     for x, y, r, d in zip(xs, ys, radii, shades, strict=True):
-        cv2.circle(
-            img, (int(x), int(y)), max(1, int(r)), float(np.clip(img[int(y), int(x)] + d, 0, 1)), -1
-        )
+        shade = float(np.clip(img[int(y), int(x)] + d, 0, 1))
+        cv2.circle(img, (int(x), int(y)), max(1, round(r)), shade, -1)
     return np.clip(cv2.GaussianBlur(img, (0, 0), 0.4 * px_per_m), 0, 1).astype(np.float32)
 
 

@@ -1,0 +1,505 @@
+"""`cvslam simulate`: a scenario in, one MCAP log per vehicle and the ground truth out.
+
+Output directory (written as `<out>.partial` and renamed when complete):
+```
+<out>/scenario.yaml            the resolved scenario (seed and duration included)
+<out>/<vehicle>.mcap           ROS 2 log: stereo images + CameraInfo (images mode), IMU
+                               (UAV) or wheel odometry (UGV), ground truth, /tf_static
+<out>/truth/<vehicle>.tum      true body pose in the nav frame (NED), TUM format
+<out>/truth/<vehicle>_imu.npz  true IMU biases over time (UAV)
+<out>/truth/world.npz          terrain: elevation grid, orthophoto, urban weight, geometry;
+                               yard: ground texture and the walls
+<out>/truth/<vehicle>_depth.npz per-pixel depth of every left image (outputs.depth)
+<out>/truth/landmarks.csv      landmark mode: id, x, y, z (nav frame)
+<out>/features/<vehicle>.npz   landmark mode: observations in the extract feature format
+```
+Stamps are integer nanoseconds from `SIM_EPOCH_NS` plus scenario time. Randomness comes
+from one seed through independent streams per world, vehicle, sensor and frame, so the
+output is byte-identical for the same scenario and seed, whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import shutil
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from cvslam_cli.errors import ConfigError, CvslamError
+from cvslam_cli.features.format import FeatureSetBuilder, rig_calibration
+from cvslam_cli.geometry.camera import CameraModel, StereoRig
+from cvslam_cli.geometry.projection import pixel_rays
+from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
+from cvslam_cli.io.features_file import save_features
+from cvslam_cli.io.mcap_writer import LogWriter
+from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
+from cvslam_cli.io.npz import NpzWriter, save_npz
+from cvslam_cli.io.trajectory import PoseTable, write_tum
+from cvslam_cli.sim.imu import simulate_imu
+from cvslam_cli.sim.landmarks import LandmarkWorld, make_world, observe_frame
+from cvslam_cli.sim.odometry import simulate_odometry
+from cvslam_cli.sim.render import RenderResult, photometric
+from cvslam_cli.sim.scenario import Scenario, SimVehicle, dump_scenario
+from cvslam_cli.sim.terrain import Terrain, make_terrain, render_terrain_view
+from cvslam_cli.sim.vehicles import VehiclePath, build_path, build_rig, camera_poses, sample_times
+from cvslam_cli.sim.yard import Yard, make_yard, render_yard_view
+
+log = logging.getLogger("cvslam")
+
+SIM_EPOCH_NS = 1_700_000_000 * 1_000_000_000
+GRAVITY_NAV = np.array([0.0, 0.0, 9.80665])
+# stream ids of the random generators (with the seed and the vehicle index)
+_WORLD, _IMU, _ODOM, _FRAME, _LANDMARKS = 0, 1, 2, 3, 4
+
+World = Terrain | Yard
+
+
+def stamp_ns(t_s: np.ndarray | float) -> np.ndarray:
+    return SIM_EPOCH_NS + np.rint(np.asarray(t_s, dtype=float) * 1e9).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class VehicleSummary:
+    stereo_frames: int
+    imu_samples: int
+    odometry_samples: int
+    ground_truth_poses: int
+    distance_m: float
+    observations: int
+
+
+@dataclass(frozen=True)
+class SimSummary:
+    out_dir: Path
+    vehicles: dict[str, VehicleSummary]
+    wall_time_s: float
+
+
+@dataclass(frozen=True, eq=False)
+class _Vehicle:
+    index: int
+    names: VehicleNames
+    spec: SimVehicle
+    rig: StereoRig
+    path: VehiclePath
+
+
+# ----------------------------------------------------------------------------- world
+
+
+def _rng(seed: int, *stream: int) -> np.random.Generator:
+    return np.random.default_rng([seed, *stream])
+
+
+def build_world(sc: Scenario) -> World:
+    rng = _rng(sc.seed, _WORLD)
+    try:
+        return make_terrain(sc.terrain, rng) if sc.world == "terrain" else make_yard(sc.yard, rng)
+    except ValueError as exc:
+        raise ConfigError(f"scenario {sc.name}: {sc.world}: {exc}") from None
+
+
+def render_view(
+    world: World,
+    cam: CameraModel,
+    T_nav_cam: np.ndarray,
+    rays: np.ndarray,
+    want_points: bool = False,
+) -> RenderResult:
+    if isinstance(world, Yard):
+        return render_yard_view(world, cam, T_nav_cam, rays=rays, want_points=want_points)
+    return render_terrain_view(world, cam, T_nav_cam, rays=rays, want_points=want_points)
+
+
+def _coarse(cam: CameraModel, factor: int = 8) -> CameraModel:
+    S = np.diag([1.0 / factor, 1.0 / factor, 1.0])
+    K = S @ cam.K
+    K[0, 2] = (cam.K[0, 2] + 0.5) / factor - 0.5
+    K[1, 2] = (cam.K[1, 2] + 0.5) / factor - 0.5
+    return replace(
+        cam, width=max(2, cam.width // factor), height=max(2, cam.height // factor), K=K, P=None
+    )
+
+
+def check_vehicle(world: World, v: _Vehicle, duration_s: float, source: str) -> None:
+    """One-line errors for a path that leaves the world or a camera that does not see it."""
+    key = f"{source}: vehicles.{v.names.vehicle}"
+    t = sample_times(v.spec.start_s, duration_s, 2.0)
+    m = v.path.sample(t)
+    n, e = m.p_nav_m[:, 0], m.p_nav_m[:, 1]
+    if isinstance(world, Terrain):
+        inside = world.contains(n, e)
+        if not inside.all():
+            i = int(np.argmin(inside))
+            raise ConfigError(
+                f"{key}.waypoints_nav_m: the path leaves the terrain at t = "
+                f"{t[i]:.1f} s (north {n[i]:.0f} m, east {e[i]:.0f} m)"
+            )
+        agl = -m.p_nav_m[:, 2] - world.elevation_at(n, e)
+        if agl.min() < 5.0:
+            i = int(np.argmin(agl))
+            raise ConfigError(
+                f"{key}.waypoints_nav_m: the vehicle is {agl[i]:.1f} m above the "
+                f"ground at t = {t[i]:.1f} s (at least 5 m needed)"
+            )
+    else:
+        ok = np.array([world.free_space_ok(a, b, 0.3) for a, b in zip(n, e, strict=True)])
+        if not ok.all():
+            i = int(np.argmin(ok))
+            raise ConfigError(
+                f"{key}.waypoints_nav_m: the path runs into a wall or leaves "
+                f"the yard at t = {t[i]:.1f} s (north {n[i]:.1f} m, east "
+                f"{e[i]:.1f} m)"
+            )
+    coarse = _coarse(v.rig.left)
+    rays = pixel_rays(coarse)
+    T_left, _, _ = camera_poses(v.path, v.rig, t[:: max(1, len(t) // 20)])
+    seen = np.array([render_view(world, coarse, T, rays).valid.mean() for T in T_left])
+    if np.median(seen) < 0.25:
+        raise ConfigError(
+            f"{key}.camera: the camera sees the ground in only "
+            f"{100 * np.median(seen):.0f}% of the image (median over the path); "
+            "check camera.mount, tilt_deg and the altitude"
+        )
+
+
+# ----------------------------------------------------------------------------- frames
+
+_STATE: dict[str, Any] = {}
+
+
+def _render_pair(job: tuple[int, int, np.ndarray, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """(left image, right image, left depth) of one frame; all state from `_STATE`."""
+    vi, k, T_left, T_right = job
+    world, sc = _STATE["world"], _STATE["scenario"]
+    rig, rays = _STATE["rigs"][vi], _STATE["rays"][vi]
+    rng = _rng(sc.seed, vi, _FRAME, k)
+    ph = sc.photometry
+    images = []
+    depth = None
+    for cam, T, r in ((rig.left, T_left, rays[0]), (rig.right, T_right, rays[1])):
+        res = render_view(world, cam, T, r)
+        gain = 1.0 + ph.gain_sigma * rng.standard_normal()
+        offset = ph.offset_sigma * rng.standard_normal()
+        images.append(
+            photometric(
+                res.radiance, gain=gain, offset=offset, noise_sigma=ph.noise_sigma_dn, rng=rng
+            )
+        )
+        if depth is None:
+            depth = res.depth_m
+    return images[0], images[1], depth
+
+
+def _frames(
+    jobs: list[tuple[int, int, np.ndarray, np.ndarray]], workers: int
+) -> Iterator[tuple[np.ndarray, ...]]:
+    if workers <= 1 or len(jobs) < 4:
+        yield from map(_render_pair, jobs)
+        return
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(workers) as pool:
+        yield from pool.imap(_render_pair, jobs, chunksize=2)
+
+
+# ----------------------------------------------------------------------------- vehicle
+
+
+def _write_vehicle(
+    out: Path,
+    sc: Scenario,
+    world: World,
+    v: _Vehicle,
+    landmarks: LandmarkWorld | None,
+    workers: int,
+    progress: bool,
+) -> VehicleSummary:
+    spec, rig, names = v.spec, v.rig, v.names
+    t_end = sc.duration_s
+    t_cam = sample_times(spec.start_s, t_end, spec.camera.rate_hz)
+    cam_ns = stamp_ns(t_cam)
+    T_left, T_right, _ = camera_poses(v.path, rig, t_cam)
+    streams: list[tuple[np.ndarray, int, str]] = [(cam_ns, 1, "frame")]
+    imu = odo = None
+    if spec.kind == "uav":
+        t_imu = sample_times(spec.start_s, t_end, spec.imu_rate_hz)
+        imu = simulate_imu(v.path, t_imu, spec.imu, _rng(sc.seed, v.index, _IMU))
+        streams.append((stamp_ns(t_imu), 0, "imu"))
+    else:
+        t_odo = sample_times(spec.start_s, t_end, spec.odometry_rate_hz)
+        odo = simulate_odometry(v.path, t_odo, spec.odometry, _rng(sc.seed, v.index, _ODOM))
+        streams.append((stamp_ns(t_odo), 0, "odom"))
+    t_gt = t_cam if spec.ground_truth_at == "camera" or imu is None else imu.t_s
+    gt = v.path.sample(t_gt)
+    gt_table = PoseTable(stamp_ns(t_gt), gt.p_nav_m, matrix_to_quat_xyzw(gt.C_nav_body))
+    streams.append((gt_table.stamps_ns, 2, "gt"))
+
+    stamps = np.concatenate([s for s, _, _ in streams])
+    order_key = np.concatenate([np.full(len(s), o) for s, o, _ in streams])
+    kinds = np.concatenate([np.full(len(s), i) for i, (s, _, _) in enumerate(streams)])
+    index = np.concatenate([np.arange(len(s)) for s, _, _ in streams])
+    order = np.lexsort((order_key, stamps))
+    kind_names = [k for _, _, k in streams]
+
+    images_mode = sc.mode == "images"
+    frames: Iterator[tuple[np.ndarray, ...]] = iter(())
+    if images_mode:
+        jobs = [(v.index, k, T_left[k], T_right[k]) for k in range(len(t_cam))]
+        frames = _frames(jobs, workers)
+    builder = FeatureSetBuilder(names.vehicle, rig_calibration(rig))
+    lm_rng = _rng(sc.seed, v.index, _LANDMARKS)
+    n_obs = 0
+    depth_writer = (
+        NpzWriter(out / "truth" / f"{names.vehicle}_depth.npz")
+        if images_mode and sc.outputs.depth
+        else None
+    )
+    topics = names.topics
+    bar = tqdm(
+        total=len(t_cam),
+        desc=f"simulate {names.vehicle}",
+        unit="frame",
+        disable=None if progress else True,
+        leave=False,
+    )
+    try:
+        with LogWriter(out / f"{names.vehicle}.mcap") as lw:
+            lw.add_metadata(
+                "cvslam.sim",
+                {
+                    "scenario": sc.name,
+                    "seed": str(sc.seed),
+                    "vehicle": names.vehicle,
+                    "kind": spec.kind,
+                    "mode": sc.mode,
+                    "nav_frame": "NED",
+                    "body_frame": "FRD",
+                    "stamp_epoch_ns": str(SIM_EPOCH_NS),
+                    "conversion": "simulated directly in the nav frame (NED); body frame FRD",
+                },
+            )
+            lw.write_tf_static(
+                TF_STATIC_TOPIC,
+                int(cam_ns[0]),
+                [
+                    (names.body_frame, names.left_frame, rig.left.T_body_cam),
+                    (names.body_frame, names.right_frame, rig.right.T_body_cam),
+                ],
+            )
+            for j in order:
+                kind, i, st = kind_names[kinds[j]], int(index[j]), int(stamps[j])
+                if kind == "imu":
+                    assert imu is not None
+                    lw.write_imu(
+                        topics.imu,
+                        st,
+                        imu.gyro_rad_s[i],
+                        imu.accel_m_s2[i],
+                        names.body_frame,
+                        gyro_var=(spec.imu.gyro_noise_density**2) * spec.imu_rate_hz,
+                        accel_var=(spec.imu.accel_noise_density**2) * spec.imu_rate_hz,
+                    )
+                elif kind == "odom":
+                    assert odo is not None
+                    yaw = odo.yaw_rad[i]
+                    lw.write_odometry(
+                        topics.odom,
+                        st,
+                        f"{names.vehicle}/odom",
+                        names.body_frame,
+                        [odo.x_m[i], odo.y_m[i], 0.0],
+                        [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)],
+                        [odo.v_forward_m_s[i], 0.0, 0.0],
+                        [0.0, 0.0, odo.yaw_rate_rad_s[i]],
+                    )
+                elif kind == "gt":
+                    lw.write_pose(
+                        topics.ground_truth, st, gt_table.p_m[i], gt_table.q_xyzw[i], NAV_FRAME_ID
+                    )
+                else:
+                    lw.write_camera_info(topics.left_info, st, rig.left)
+                    lw.write_camera_info(topics.right_info, st, rig.right)
+                    if images_mode:
+                        left, right, depth = next(frames)
+                        lw.write_image(topics.left_image, st, left, names.left_frame)
+                        lw.write_image(topics.right_image, st, right, names.right_frame)
+                        if depth_writer is not None:
+                            depth_writer.add(f"frame_{i:06d}", depth.astype(np.float16))
+                    else:
+                        assert landmarks is not None
+                        left_kp, right_kp, matches = observe_frame(
+                            landmarks, rig, T_left[i], sc.landmarks, lm_rng
+                        )
+                        builder.add_frame(st, left_kp, right_kp, matches)
+                        n_obs += len(matches["landmark_id"])
+                    bar.update(1)
+    finally:
+        bar.close()
+        if depth_writer is not None:
+            depth_writer.__exit__(None, None, None)
+    write_tum(
+        out / "truth" / f"{names.vehicle}.tum",
+        gt_table,
+        header=f"ground truth of {names.vehicle} (body in nav frame, NED), scenario "
+        f"{sc.name}, seed {sc.seed}",
+    )
+    if imu is not None:
+        save_npz(
+            out / "truth" / f"{names.vehicle}_imu.npz",
+            {
+                "stamp_ns": stamp_ns(imu.t_s),
+                "gyro_bias_rad_s": imu.gyro_bias_rad_s,
+                "accel_bias_m_s2": imu.accel_bias_m_s2,
+            },
+        )
+    if not images_mode:
+        save_features(
+            builder.build(),
+            out / "features" / f"{names.vehicle}.npz",
+            {
+                "producer": "cvslam simulate (landmark mode)",
+                "scenario": sc.name,
+                "seed": sc.seed,
+                "landmarks": dump_scenario(sc)["landmarks"],
+            },
+        )
+    dist = float(np.sum(np.linalg.norm(np.diff(gt.p_nav_m, axis=0), axis=1)))
+    return VehicleSummary(
+        len(t_cam),
+        0 if imu is None else len(imu.t_s),
+        0 if odo is None else len(odo.t_s),
+        len(gt_table),
+        dist,
+        n_obs,
+    )
+
+
+# ----------------------------------------------------------------------------- truth
+
+
+def _landmark_world(sc: Scenario, world: World) -> LandmarkWorld:
+    rng = _rng(sc.seed, _WORLD, _LANDMARKS)
+    dens = sc.landmarks.density_per_100m2 / 100.0
+    if isinstance(world, Terrain):
+        (n0, e0), (sn, se) = world.spec.origin_nav_m, world.spec.size_m
+        count = int(rng.poisson(dens * sn * se))
+        n, e = rng.uniform(n0, n0 + sn, count), rng.uniform(e0, e0 + se, count)
+        return make_world(world.surface_nav(n, e), rng)
+    (n0, e0), (sn, se) = world.spec.origin_nav_m, world.spec.size_m
+    pts = []
+    count = int(rng.poisson(dens * sn * se))
+    pts.append(
+        np.column_stack(
+            [rng.uniform(n0, n0 + sn, count), rng.uniform(e0, e0 + se, count), np.zeros(count)]
+        )
+    )
+    segs, heights = [], []
+    for w in world.walls:
+        p0, p1 = np.asarray(w.p0_ne, float), np.asarray(w.p1_ne, float)
+        length = float(np.linalg.norm(p1 - p0))
+        k = int(rng.poisson(dens * 4 * length * w.height_m))  # walls are feature-rich
+        s, h = rng.uniform(0, 1, k), rng.uniform(0.05, 0.95, k) * w.height_m
+        ne = p0 + s[:, None] * (p1 - p0)
+        pts.append(np.column_stack([ne, -h]))
+        segs.append([p0, p1])
+        heights.append(w.height_m)
+    return make_world(np.vstack(pts), rng, (np.asarray(segs, float), np.asarray(heights, float)))
+
+
+def _write_world(out: Path, sc: Scenario, world: World) -> None:
+    if isinstance(world, Terrain):
+        save_npz(
+            out / "truth" / "world.npz",
+            {
+                "kind": np.array("terrain"),
+                "elevation_m": world.elevation_m,
+                "texture": world.texture,
+                "urban_weight": world.urban_weight,
+                "origin_nav_m": np.asarray(world.spec.origin_nav_m, float),
+                "size_m": np.asarray(world.spec.size_m, float),
+                "height_res_m": np.array(world.spec.height_res_m),
+                "texture_px_per_m": np.array(world.spec.texture_px_per_m),
+            },
+        )
+    else:
+        save_npz(
+            out / "truth" / "world.npz",
+            {
+                "kind": np.array("yard"),
+                "ground_texture": world.ground_texture,
+                "origin_nav_m": np.asarray(world.spec.origin_nav_m, float),
+                "size_m": np.asarray(world.spec.size_m, float),
+                "ground_px_per_m": np.array(world.spec.ground_px_per_m),
+                "wall_segments_ne": np.array([[w.p0_ne, w.p1_ne] for w in world.walls], float),
+                "wall_heights_m": np.array([w.height_m for w in world.walls], float),
+            },
+        )
+
+
+# ----------------------------------------------------------------------------- run
+
+
+def run(
+    sc: Scenario,
+    out_dir: Path,
+    *,
+    source: str = "scenario",
+    force: bool = False,
+    workers: int = 1,
+    progress: bool = False,
+) -> SimSummary:
+    t_start = time.perf_counter()
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
+        raise CvslamError(f"{out_dir}: already exists and is not empty (use --force to replace it)")
+    world = build_world(sc)
+    vehicles = []
+    for i, (name, spec) in enumerate(sorted(sc.vehicles.items())):
+        names = vehicle_names(name, ConfigError)
+        rig = build_rig(name, spec.camera)
+        v = _Vehicle(i, names, spec, rig, build_path(name, spec, sc.duration_s, source))
+        check_vehicle(world, v, sc.duration_s, source)
+        vehicles.append(v)
+    landmarks = _landmark_world(sc, world) if sc.mode == "landmarks" else None
+
+    tmp = out_dir.with_name(out_dir.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "truth").mkdir(parents=True)
+    _STATE.update(
+        world=world,
+        scenario=sc,
+        rigs={v.index: v.rig for v in vehicles},
+        rays={v.index: (pixel_rays(v.rig.left), pixel_rays(v.rig.right)) for v in vehicles}
+        if sc.mode == "images"
+        else {},
+    )
+    try:
+        summaries = {
+            v.names.vehicle: _write_vehicle(tmp, sc, world, v, landmarks, workers, progress)
+            for v in vehicles
+        }
+        _write_world(tmp, sc, world)
+        if landmarks is not None:
+            ids = np.arange(len(landmarks.p_nav_m))
+            lines = ["id,x_m,y_m,z_m"] + [
+                f"{i},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}"
+                for i, p in zip(ids, landmarks.p_nav_m, strict=True)
+            ]
+            (tmp / "truth" / "landmarks.csv").write_text("\n".join(lines) + "\n")
+        (tmp / "scenario.yaml").write_text(yaml.safe_dump(dump_scenario(sc), sort_keys=False))
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        _STATE.clear()
+    if out_dir.exists():
+        shutil.rmtree(out_dir) if out_dir.is_dir() else out_dir.unlink()
+    tmp.rename(out_dir)
+    return SimSummary(out_dir, summaries, time.perf_counter() - t_start)

@@ -1,0 +1,298 @@
+"""`cvslam simulate` end to end on small scenarios: logs, truth, determinism, bad input."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from cvslam_cli.config import load_config
+from cvslam_cli.errors import ConfigError, CvslamError
+from cvslam_cli.estimation.strapdown import integrate_strapdown
+from cvslam_cli.geometry.rotations import quat_xyzw_to_matrix
+from cvslam_cli.io.features_file import load_features
+from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.records import ImuSample, OdometryRecord, PoseRecord, StereoFrame
+from cvslam_cli.sim.scenario import SCENARIO_DIR, load_scenario
+from cvslam_cli.sim.stage import run
+from cvslam_cli.sim.vehicles import build_path
+
+SMALL_CAMERA = {
+    "mount": "down",
+    "width": 188,
+    "height": 120,
+    "fx": 112.5,
+    "fy": 112.5,
+    "cx": 93.5,
+    "cy": 59.5,
+    "baseline_m": 1.5,
+    "rate_hz": 5.0,
+}
+
+
+def small_uav_scenario(tmp_path: Path, **changes) -> Path:
+    sc = {
+        "name": "small",
+        "duration_s": 6.0,
+        "seed": 3,
+        "world": "terrain",
+        "terrain": {
+            "size_m": [300.0, 300.0],
+            "origin_nav_m": [-150.0, -150.0],
+            "texture_px_per_m": 2.0,
+            "relief_m": 20.0,
+            "relief_scale_m": 80.0,
+            "region_scale_m": 100.0,
+        },
+        "vehicles": {
+            "uav1": {
+                "closed": True,
+                "speed_m_s": 10.0,
+                "camera": dict(SMALL_CAMERA),
+                "waypoints_nav_m": [[0, -30, -80], [30, 0, -80], [0, 30, -80], [-30, 0, -80]],
+            },
+            "uav2": {
+                "start_s": 1.0,
+                "speed_m_s": 10.0,
+                "camera": dict(SMALL_CAMERA),
+                "waypoints_nav_m": [[-60, -60, -85], [0, -10, -85], [60, 60, -85]],
+            },
+        },
+    }
+    for key, value in changes.items():
+        node = sc
+        *parents, last = key.split(".")
+        for p in parents:
+            node = node[p]
+        node[last] = value
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(sc))
+    return path
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("sim")
+    sc = load_scenario(small_uav_scenario(tmp))
+    return run(sc, tmp / "out", workers=2), sc
+
+
+def test_outputs_and_logs_read_back(small_run):
+    summary, sc = small_run
+    out = summary.out_dir
+    for name in ("uav1", "uav2"):
+        assert (out / f"{name}.mcap").is_file()
+        assert (out / "truth" / f"{name}.tum").is_file()
+        assert (out / "truth" / f"{name}_imu.npz").is_file()
+    assert (out / "truth" / "world.npz").is_file() and (out / "scenario.yaml").is_file()
+    assert load_scenario(out / "scenario.yaml") == sc  # the copy reproduces the run
+    logs = LogSet(
+        [McapLogSource(out / "uav1.mcap"), McapLogSource(out / "uav2.mcap")], load_config().logs
+    )
+    assert sorted(logs.vehicles) == ["uav1", "uav2"]
+    rig = logs.rig("uav1")
+    assert rig.baseline_m == pytest.approx(1.5) and rig.rectified
+    recs = list(logs.records())
+    frames = {
+        v: [r for r in recs if isinstance(r, StereoFrame) and r.vehicle == v]
+        for v in ("uav1", "uav2")
+    }
+    imu = [r for r in recs if isinstance(r, ImuSample) and r.vehicle == "uav1"]
+    assert len(frames["uav1"]) == 31 and len(frames["uav2"]) == 26  # 5 Hz, uav2 starts at 1 s
+    assert len(imu) == 1201
+    assert frames["uav1"][0].left.image.shape == (120, 188)
+    assert frames["uav2"][0].stamp_ns - frames["uav1"][0].stamp_ns == 1_000_000_000
+    assert 20 < np.mean([f.left.image.mean() for f in frames["uav1"]]) < 235
+    assert logs.stats["uav1"].unpaired_left == 0
+
+
+def test_same_seed_is_byte_identical_other_seed_differs(small_run, tmp_path):
+    summary, sc = small_run
+    again = run(sc, tmp_path / "again", workers=1)  # also: worker count does not matter
+    assert _digest(summary.out_dir) == _digest(again.out_dir)
+    other = run(load_scenario(small_uav_scenario(tmp_path), seed=4), tmp_path / "other")
+    a, b = _digest(summary.out_dir), _digest(other.out_dir)
+    assert a["uav1.mcap"] != b["uav1.mcap"] and a["truth/world.npz"] != b["truth/world.npz"]
+
+
+def _records(path: Path, cls):
+    logs = LogSet([McapLogSource(path)], load_config().logs)
+    return [r for r in logs.records() if isinstance(r, cls)]
+
+
+def test_noise_free_imu_in_the_log_integrates_to_the_truth(tmp_path):
+    """The IMU written to the MCAP (not only the model) is exact: strapdown integration of
+    the logged samples stays on the logged ground truth to millimetres."""
+    path = small_uav_scenario(tmp_path)
+    zero = {
+        "gyro_noise_density": 0.0,
+        "gyro_random_walk": 0.0,
+        "accel_noise_density": 0.0,
+        "accel_random_walk": 0.0,
+        "gyro_bias_initial_sigma": 0.0,
+        "accel_bias_initial_sigma": 0.0,
+    }
+    sc = load_scenario(
+        path,
+        [
+            f"vehicles.uav1.imu={zero}".replace("'", ""),
+            "vehicles.uav1.ground_truth_at=imu",
+            "mode=landmarks",
+        ],
+        duration_s=20.0,
+    )
+    out = run(sc, tmp_path / "exact").out_dir
+    imu = _records(out / "uav1.mcap", ImuSample)
+    gt = _records(out / "uav1.mcap", PoseRecord)
+    t = np.array([s.stamp_ns for s in imu]) * 1e-9
+    gyro = np.array([s.gyro_rad_s for s in imu])
+    acc = np.array([s.accel_m_s2 for s in imu])
+    p_true = np.array([g.p_m for g in gt])
+    C0 = quat_xyzw_to_matrix(gt[0].q_xyzw)
+
+    path_obj = build_path("uav1", sc.vehicles["uav1"], sc.duration_s, "test")
+    v0 = path_obj.sample(np.array([0.0])).v_nav_m_s[0]
+    p, _, _ = integrate_strapdown(t - t[0], gyro, acc, p_true[0], v0, C0, np.array([0, 0, 9.80665]))
+    err = np.linalg.norm(p - p_true, axis=1)
+    assert err.max() < 0.005, err.max()
+
+
+def test_dead_reckoning_drifts_superlinearly(tmp_path):
+    path = small_uav_scenario(tmp_path)
+    opts = ["vehicles.uav1.ground_truth_at=imu", "mode=landmarks"]
+    sc = load_scenario(path, opts, duration_s=30.0)
+    errors = []
+    for seed in range(2):
+        out = run(
+            load_scenario(path, opts, seed=seed, duration_s=30.0), tmp_path / f"dr{seed}"
+        ).out_dir
+        imu = _records(out / "uav1.mcap", ImuSample)
+        gt = _records(out / "uav1.mcap", PoseRecord)
+        t = np.array([s.stamp_ns for s in imu]) * 1e-9
+        v0 = (
+            build_path("uav1", sc.vehicles["uav1"], sc.duration_s, "t")
+            .sample(np.array([0.0]))
+            .v_nav_m_s[0]
+        )
+        p, _, _ = integrate_strapdown(
+            t - t[0],
+            np.array([s.gyro_rad_s for s in imu]),
+            np.array([s.accel_m_s2 for s in imu]),
+            gt[0].p_m,
+            v0,
+            quat_xyzw_to_matrix(gt[0].q_xyzw),
+            np.array([0, 0, 9.80665]),
+        )
+        errors.append(np.linalg.norm(p - np.array([g.p_m for g in gt]), axis=1))
+    err = np.mean(errors, axis=0)
+    t = np.arange(len(err)) / 200.0
+    e10, e30 = err[np.searchsorted(t, 10.0)], err[-1]
+    assert e30 > 10.0  # visibly drifting: tens of metres after 30 s
+    assert e30 / e10 > 3**1.8  # superlinear: about quadratic or faster from 10 s to 30 s
+
+
+def test_landmark_mode_writes_features_consistent_with_truth(tmp_path):
+    # pixel noise small against the disparity (~2 px here), where the linearised covariance
+    # of the triangulation holds
+    sc = load_scenario(
+        small_uav_scenario(tmp_path), ["mode=landmarks", "landmarks.pixel_noise_px=0.1"]
+    )
+    out = run(sc, tmp_path / "lm").out_dir
+    assert not list(out.glob("truth/*_depth.npz"))
+    truth = np.loadtxt(out / "truth" / "landmarks.csv", delimiter=",", skiprows=1)
+    fs, meta = load_features(out / "features" / "uav1.npz")
+    assert meta["producer"].startswith("cvslam simulate")
+    assert fs.n_frames == 31 and fs.match_offsets[-1] > 31 * 20
+    gt = _records(out / "uav1.mcap", PoseRecord)
+    assert [g.stamp_ns for g in gt] == fs.frame_stamp_ns.tolist()
+    nees, outliers = [], 0
+    T_body_left = fs.rig.T_body_cam[0]
+    for i, g in enumerate(gt):
+        sl = fs.frame_matches(i)
+        ids = fs.match_landmark_id[sl]
+        outliers += int(np.sum(ids == -2))
+        good = ids >= 0
+        T_nav_body = np.eye(4)
+        T_nav_body[:3, :3] = quat_xyzw_to_matrix(g.q_xyzw)
+        T_nav_body[:3, 3] = g.p_m
+        T = T_nav_body @ T_body_left
+        p_cam_true = (truth[ids[good], 1:4] - T[:3, 3]) @ T[:3, :3]
+        diff = fs.match_p_cam_m[sl][good] - p_cam_true
+        cov = fs.match_cov_cam_m2[sl][good]
+        nees.extend(np.einsum("ni,nij,nj->n", diff, np.linalg.inv(cov), diff))
+    assert 2.5 < np.mean(nees) < 3.6  # consistent 3-D covariance (chi-square, 3 dof)
+    total = int(fs.match_offsets[-1])
+    assert 0.01 < outliers / total < 0.06  # outlier_fraction 0.03
+    assert np.all(fs.match_ratio[fs.match_landmark_id >= 0] < 1.0)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"vehicles.uav1.speed_m_s": -1.0}, "vehicles.uav1.speed_m_s: expected a number > 0.0"),
+        ({"vehicles.uav1.camera.rate_hz": -5.0}, "vehicles.uav1.camera.rate_hz: expected"),
+        ({"vehicles.uav1.colour": "red"}, "vehicles.uav1.colour: unknown key"),
+        (
+            {"vehicles.uav2.waypoints_nav_m": [[140, 0, -80], [200, 0, -80], [200, 100, -80]]},
+            "vehicles.uav2.waypoints_nav_m: the path leaves the terrain",
+        ),
+        (
+            {"vehicles.uav1.camera.mount": "forward", "vehicles.uav1.camera.tilt_deg": -30.0},
+            "vehicles.uav1.camera: the camera sees the ground in only",
+        ),
+        (
+            {"vehicles.uav1.waypoints_nav_m": [[0, 0, -80]]},
+            "vehicles.uav1.waypoints_nav_m: expected at least 2 waypoints",
+        ),
+    ],
+)
+def test_bad_scenarios_give_one_line_naming_the_key(tmp_path, change, message):
+    with pytest.raises(ConfigError) as exc:
+        sc = load_scenario(small_uav_scenario(tmp_path, **change))
+        run(sc, tmp_path / "bad")
+    assert message in str(exc.value) and "\n" not in str(exc.value)
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "bad.partial").exists()
+
+
+def test_existing_output_needs_force(tmp_path):
+    sc = load_scenario(small_uav_scenario(tmp_path), ["mode=landmarks", "duration_s=2.0"])
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "keep.txt").write_text("precious")
+    with pytest.raises(CvslamError, match="already exists"):
+        run(sc, tmp_path / "out")
+    assert (tmp_path / "out" / "keep.txt").read_text() == "precious"
+    run(sc, tmp_path / "out", force=True)
+    assert not (tmp_path / "out" / "keep.txt").exists()
+
+
+def test_shipped_scenarios_load():
+    for path in sorted(SCENARIO_DIR.glob("*.yaml")):
+        sc = load_scenario(path)
+        assert sc.vehicles, path
+
+
+def test_ugv_odometry_drifts(tmp_path):
+    sc = load_scenario(SCENARIO_DIR / "ugv2_yard.yaml", ["mode=landmarks", "duration_s=30"])
+    out = run(sc, tmp_path / "yard").out_dir
+    for name in sc.vehicles:
+        odo = _records(out / f"{name}.mcap", OdometryRecord)
+        gt = _records(out / f"{name}.mcap", PoseRecord)
+        assert len(odo) == int((30 - sc.vehicles[name].start_s) * 50) + 1
+        p_odo = np.array([o.position_m[:2] for o in odo])
+        t_odo = np.array([o.stamp_ns for o in odo])
+        idx = np.searchsorted(t_odo, gt[-1].stamp_ns)
+        final = np.linalg.norm(p_odo[idx] - gt[-1].p_m[:2])
+        dist = np.sum(np.linalg.norm(np.diff(np.array([g.p_m for g in gt]), axis=0), axis=1))
+        assert final > 0.01 * dist  # wheel odometry drifts measurably
