@@ -20,6 +20,7 @@ output is byte-identical for the same scenario and seed, whatever the number of 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import shutil
@@ -257,20 +258,22 @@ def _write_vehicle(
     builder = FeatureSetBuilder(names.vehicle, rig_calibration(rig))
     lm_rng = _rng(sc.seed, v.index, _LANDMARKS)
     n_obs = 0
-    depth_writer = (
-        NpzWriter(out / "truth" / f"{names.vehicle}_depth.npz")
-        if images_mode and sc.outputs.depth
-        else None
-    )
     topics = names.topics
-    bar = tqdm(
-        total=len(t_cam),
-        desc=f"simulate {names.vehicle}",
-        unit="frame",
-        disable=None if progress else True,
-        leave=False,
-    )
-    try:
+    with contextlib.ExitStack() as stack:
+        depth_writer = (
+            stack.enter_context(NpzWriter(out / "truth" / f"{names.vehicle}_depth.npz"))
+            if images_mode and sc.outputs.depth
+            else None
+        )
+        bar = stack.enter_context(
+            tqdm(
+                total=len(t_cam),
+                desc=f"simulate {names.vehicle}",
+                unit="frame",
+                disable=None if progress else True,
+                leave=False,
+            )
+        )
         with LogWriter(out / f"{names.vehicle}.mcap") as lw:
             lw.add_metadata(
                 "cvslam.sim",
@@ -341,10 +344,6 @@ def _write_vehicle(
                         builder.add_frame(st, left_kp, right_kp, matches)
                         n_obs += len(matches["landmark_id"])
                     bar.update(1)
-    finally:
-        bar.close()
-        if depth_writer is not None:
-            depth_writer.__exit__(None, None, None)
     write_tum(
         out / "truth" / f"{names.vehicle}.tum",
         gt_table,

@@ -299,8 +299,10 @@ def test_ugv_odometry_drifts(tmp_path):
 
 
 def test_non_rectified_rig_and_true_depth(tmp_path):
-    sc = load_scenario(small_uav_scenario(tmp_path), [
-        "vehicles.uav1.camera.rectified=false", "outputs.depth=true", "duration_s=2.0"])
+    sc = load_scenario(
+        small_uav_scenario(tmp_path),
+        ["vehicles.uav1.camera.rectified=false", "outputs.depth=true", "duration_s=2.0"],
+    )
     out = run(sc, tmp_path / "nr").out_dir
     logs = LogSet([McapLogSource(out / "uav1.mcap")], load_config().logs)
     rig = logs.rig("uav1")
@@ -322,3 +324,17 @@ def test_non_rectified_rig_and_true_depth(tmp_path):
     # the small test terrain is steep (20 m hills 80 m across): a few oblique corner rays of
     # the distorted camera are ambiguous and marked invalid (NaN) rather than guessed
     assert np.isfinite(depth).mean() > 0.95
+
+
+def test_duration_stretches_the_same_mission(tmp_path):
+    base = load_scenario(SCENARIO_DIR / "uav2_paper.yaml")
+    long = load_scenario(SCENARIO_DIR / "uav2_paper.yaml", duration_s=4 * base.duration_s)
+    for name, v in base.vehicles.items():
+        w = long.vehicles[name]
+        assert w.speed_m_s == pytest.approx(v.speed_m_s / 4)
+        assert w.start_s == pytest.approx(v.start_s * 4)
+        assert w.waypoints_nav_m == v.waypoints_nav_m and w.camera == v.camera
+        a = build_path(name, v, base.duration_s, "t")
+        b = build_path(name, w, long.duration_s, "t")
+        t = np.linspace(v.start_s, base.duration_s, 7)
+        np.testing.assert_allclose(b.sample(4 * t).p_nav_m, a.sample(t).p_nav_m, atol=1e-6)
