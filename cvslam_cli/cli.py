@@ -278,6 +278,64 @@ def simulate(
     )
 
 
+# ----------------------------------------------------------------------------- extract
+
+
+@cli.command()
+@click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    "run_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Run directory.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=2,
+    show_default=True,
+    help="Processes working on frames in parallel.",
+)
+@click.option(
+    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
+)
+@config_options
+def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cfg: Config) -> None:
+    """Adaptive SIFT + stereo-constrained matching on every stereo frame of LOG...
+
+    Writes RUN_DIR/features/<vehicle>.npz (docs/feature_format.md) and
+    <vehicle>_stats.csv, and records the stage in RUN_DIR/run.yaml.
+    """
+    from cvslam_cli.features.stage import run
+
+    summary = run(
+        cfg,
+        list(logs),
+        run_dir,
+        workers=workers,
+        force=force,
+        progress=log.isEnabledFor(logging.INFO),
+    )
+    write_resolved_config(cfg, run_dir / "features" / "extract.yaml")
+    for name, v in summary.vehicles.items():
+        log.info(
+            "%s: %d stereo frames (%d empty, %d/%d images unpaired), %.0f keypoints and "
+            "%.0f matches per frame, %.1f candidates per keypoint",
+            name,
+            v.frames,
+            v.empty_frames,
+            v.unpaired_left,
+            v.unpaired_right,
+            v.keypoints_per_frame,
+            v.matches_per_frame,
+            v.candidates_per_keypoint,
+        )
+    if not summary.skipped:
+        log.info("wrote %s", run_dir / "features")
+
+
 # ----------------------------------------------------------------------------- entry
 
 

@@ -113,8 +113,57 @@ class LogsConfig:
 
 
 @dataclass(frozen=True)
+class SiftConfig:
+    """OpenCV SIFT parameters (the fixed detector, and the starting point of the adaptive one)."""
+
+    n_octave_layers: int = opt(3, lo=1, hi=10)
+    contrast_threshold: float = opt(0.04, lo=0.0, lo_open=True)
+    edge_threshold: float = opt(10.0, lo=1.0)
+    sigma: float = opt(1.6, lo=0.5)
+    half_resolution_base: bool = True
+
+
+@dataclass(frozen=True)
+class AdaptiveSiftConfig:
+    """Adaptive SIFT: scale step and contrast threshold chosen per image from the energy of
+    its difference-of-Gaussian response, keypoint count kept inside [features_min,
+    features_max] (derivation in cvslam_cli/features/sift.py)."""
+
+    enabled: bool = True
+    dog_rms_ref: float = opt(0.01, lo=0.0, lo_open=True)
+    contrast_per_rms: float = opt(2.0, lo=0.0, lo_open=True)
+    layers_min: int = opt(2, lo=1, hi=10)
+    layers_max: int = opt(6, lo=1, hi=10)
+    contrast_min: float = opt(0.002, lo=0.0, lo_open=True)
+    contrast_max: float = opt(0.08, lo=0.0, lo_open=True)
+    features_min: int = opt(150, lo=0)
+    features_max: int = opt(1200, lo=1)
+    retry_factor: float = opt(0.5, lo=0.0, hi=1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class StereoMatchConfig:
+    """Stereo-constrained matching (paper eq. 20-34) and triangulation."""
+
+    z_min_m: float = opt(0.0, lo=0.0)
+    max_range_m: float = opt(0.0, lo=0.0)
+    vertical_tolerance_px: float = opt(1.5, lo=0.0, lo_open=True)
+    dist_ratio: float = opt(0.7, lo=0.0, hi=1.0, lo_open=True)
+    left_right_check: bool = True
+    pixel_sigma_px: float = opt(0.3, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class ExtractConfig:
+    sift: SiftConfig = opt(SiftConfig())
+    adaptive: AdaptiveSiftConfig = opt(AdaptiveSiftConfig())
+    stereo: StereoMatchConfig = opt(StereoMatchConfig())
+
+
+@dataclass(frozen=True)
 class Config:
     logs: LogsConfig = opt(LogsConfig())
+    extract: ExtractConfig = opt(ExtractConfig())
 
 
 # --------------------------------------------------------------------------- building

@@ -47,11 +47,12 @@ def triangulate(M_left: F64, M_right: F64, uv_left: F64, uv_right: F64) -> F64:
 
 
 def triangulation_covariance(
-    M_left: F64, M_right: F64, uv_left: F64, uv_right: F64, sigma_px: float
+    M_left: F64, M_right: F64, uv_left: F64, uv_right: F64, sigma_px: float | F64
 ) -> F64:
     """(N, 3, 3) covariance of `triangulate` for independent N(0, sigma_px^2) pixel noise on
-    each of the four coordinates: J J^T sigma^2 with J = d point / d (u_l, v_l, u_r, v_r)
-    (central differences of the exact triangulation, step 1e-3 px)."""
+    each of the four coordinates (`sigma_px` scalar or one per point): J J^T sigma^2 with
+    J = d point / d (u_l, v_l, u_r, v_r) (central differences of the exact triangulation,
+    step 1e-3 px)."""
     uv_l = np.asarray(uv_left, dtype=float).reshape(-1, 2)
     uv_r = np.asarray(uv_right, dtype=float).reshape(-1, 2)
     h = 1e-3
@@ -62,4 +63,5 @@ def triangulation_covariance(
         plus = triangulate(M_left, M_right, uv_l + d[:2], uv_r + d[2:])
         minus = triangulate(M_left, M_right, uv_l - d[:2], uv_r - d[2:])
         J[:, :, k] = (plus - minus) / (2 * h)
-    return np.einsum("nik,njk->nij", J, J) * sigma_px**2
+    var = np.broadcast_to(np.asarray(sigma_px, dtype=float) ** 2, (uv_l.shape[0],))
+    return np.einsum("nik,njk->nij", J, J) * var[:, None, None]

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import multiprocessing
 import shutil
 import time
 from collections.abc import Iterator
@@ -44,6 +43,7 @@ from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
 from cvslam_cli.io.npz import NpzWriter, save_npz
 from cvslam_cli.io.trajectory import PoseTable, write_tum
+from cvslam_cli.parallel import STATE, ordered_map
 from cvslam_cli.sim.imu import simulate_imu
 from cvslam_cli.sim.landmarks import LandmarkWorld, make_world, observe_frame
 from cvslam_cli.sim.odometry import simulate_odometry
@@ -174,14 +174,13 @@ def check_vehicle(world: World, v: _Vehicle, duration_s: float, source: str) -> 
 
 # ----------------------------------------------------------------------------- frames
 
-_STATE: dict[str, Any] = {}
-
 
 def _render_pair(job: tuple[int, int, np.ndarray, np.ndarray]) -> tuple[np.ndarray, ...]:
-    """(left image, right image, left depth) of one frame; all state from `_STATE`."""
+    """(left image, right image, left depth) of one frame of vehicle `vi`; the world and
+    the vehicle's rig come from `parallel.STATE`."""
     vi, k, T_left, T_right = job
-    world, sc = _STATE["world"], _STATE["scenario"]
-    rig, rays = _STATE["rigs"][vi], _STATE["rays"][vi]
+    world, sc = STATE["world"], STATE["scenario"]
+    rig, rays = STATE["rig"], STATE["rays"]
     rng = _rng(sc.seed, vi, _FRAME, k)
     ph = sc.photometry
     images = []
@@ -200,17 +199,6 @@ def _render_pair(job: tuple[int, int, np.ndarray, np.ndarray]) -> tuple[np.ndarr
     return images[0], images[1], depth
 
 
-def _frames(
-    jobs: list[tuple[int, int, np.ndarray, np.ndarray]], workers: int
-) -> Iterator[tuple[np.ndarray, ...]]:
-    if workers <= 1 or len(jobs) < 4:
-        yield from map(_render_pair, jobs)
-        return
-    ctx = multiprocessing.get_context("fork")
-    with ctx.Pool(workers) as pool:
-        yield from pool.imap(_render_pair, jobs, chunksize=2)
-
-
 # ----------------------------------------------------------------------------- vehicle
 
 
@@ -222,6 +210,7 @@ def _write_vehicle(
     landmarks: LandmarkWorld | None,
     workers: int,
     progress: bool,
+    render_state: dict[str, Any],
 ) -> VehicleSummary:
     spec, rig, names = v.spec, v.rig, v.names
     t_end = sc.duration_s
@@ -254,7 +243,8 @@ def _write_vehicle(
     frames: Iterator[tuple[np.ndarray, ...]] = iter(())
     if images_mode:
         jobs = [(v.index, k, T_left[k], T_right[k]) for k in range(len(t_cam))]
-        frames = _frames(jobs, workers)
+        state = {**render_state, "rig": rig, "rays": (pixel_rays(rig.left), pixel_rays(rig.right))}
+        frames = ordered_map(_render_pair, jobs, workers=workers, state=state)
     builder = FeatureSetBuilder(names.vehicle, rig_calibration(rig))
     lm_rng = _rng(sc.seed, v.index, _LANDMARKS)
     n_obs = 0
@@ -471,17 +461,12 @@ def run(
     tmp = out_dir.with_name(out_dir.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "truth").mkdir(parents=True)
-    _STATE.update(
-        world=world,
-        scenario=sc,
-        rigs={v.index: v.rig for v in vehicles},
-        rays={v.index: (pixel_rays(v.rig.left), pixel_rays(v.rig.right)) for v in vehicles}
-        if sc.mode == "images"
-        else {},
-    )
+    render_state = {"world": world, "scenario": sc}
     try:
         summaries = {
-            v.names.vehicle: _write_vehicle(tmp, sc, world, v, landmarks, workers, progress)
+            v.names.vehicle: _write_vehicle(
+                tmp, sc, world, v, landmarks, workers, progress, render_state
+            )
             for v in vehicles
         }
         _write_world(tmp, sc, world)
@@ -496,8 +481,6 @@ def run(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    finally:
-        _STATE.clear()
     if out_dir.exists():
         shutil.rmtree(out_dir) if out_dir.is_dir() else out_dir.unlink()
     tmp.rename(out_dir)

@@ -1,0 +1,282 @@
+"""`cvslam extract`: every stereo frame of every vehicle -> keypoints, stereo matches and
+triangulated points, in the feature format (docs/feature_format.md).
+
+Per frame: adaptive SIFT on both images (`sift.py`), keypoints undistorted, stereo-
+constrained matching (`matching.py`, eq. 20-34), triangulation from both projection
+matrices with a covariance from the keypoint localisation noise (the inverse observation
+model, `geometry/stereo.py`), rejecting points behind the cameras or beyond the maximum
+range. Frames are processed in parallel worker processes (`--workers`) and collected in
+time order. Outputs, written to temporary names and renamed when complete:
+
+    <run>/features/<vehicle>.npz        the FeatureSet
+    <run>/features/<vehicle>_stats.csv  one row per frame (counts, adaptive parameters,
+                                        candidates per keypoint, time per step)
+    <run>/run.yaml                      the stage record (config, input checksums)
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from cvslam_cli import __version__
+from cvslam_cli.config import Config, ExtractConfig
+from cvslam_cli.errors import CvslamError
+from cvslam_cli.features.format import FeatureSetBuilder, rig_calibration
+from cvslam_cli.features.matching import match_stereo, undistort_keypoints
+from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
+from cvslam_cli.geometry.camera import StereoRig
+from cvslam_cli.geometry.stereo import (
+    projection_matrices,
+    triangulate,
+    triangulation_covariance,
+)
+from cvslam_cli.io.features_file import save_features
+from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.records import StereoFrame
+from cvslam_cli.io.rundir import RunDir, write_text_atomic
+from cvslam_cli.parallel import STATE, ordered_map
+
+log = logging.getLogger("cvslam")
+
+STATS_COLUMNS = (
+    "stamp_ns",
+    "kp_left",
+    "kp_right",
+    "layers_left",
+    "layers_right",
+    "contrast_left",
+    "contrast_right",
+    "dog_rms_left",
+    "dog_rms_right",
+    "retried_left",
+    "retried_right",
+    "candidates_per_kp",
+    "matches",
+    "points",
+    "t_detect_s",
+    "t_describe_s",
+    "t_match_s",
+    "t_triangulate_s",
+    "t_total_s",
+)
+
+
+@dataclass(frozen=True)
+class VehicleExtract:
+    frames: int
+    empty_frames: int
+    unpaired_left: int
+    unpaired_right: int
+    keypoints_per_frame: float
+    matches_per_frame: float
+    candidates_per_keypoint: float
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class ExtractSummary:
+    run_dir: Path
+    skipped: bool
+    vehicles: dict[str, VehicleExtract]
+
+
+def stereo_limits(rig: StereoRig, cfg: ExtractConfig) -> tuple[float, float]:
+    """(z_min_m, max_range_m) with the automatic defaults resolved from the rig."""
+    b = rig.baseline_m
+    z_min = cfg.stereo.z_min_m or max(0.5, 4.0 * b)
+    max_range = cfg.stereo.max_range_m or 400.0 * b
+    return z_min, max_range
+
+
+# ----------------------------------------------------------------------------- one frame
+
+
+def _side(kp: Keypoints, uv_px: np.ndarray) -> dict[str, np.ndarray]:
+    return {
+        "uv_raw_px": kp.uv_raw_px,
+        "uv_px": uv_px,
+        "size_px": kp.size_px,
+        "angle_deg": kp.angle_deg,
+        "response": kp.response,
+        "octave": kp.octave,
+        "desc": kp.desc,
+    }
+
+
+def process_frame(
+    left_img: np.ndarray, right_img: np.ndarray, rig: StereoRig, cfg: ExtractConfig
+) -> tuple[dict, dict, dict, dict[str, Any]]:
+    """(left keypoints, right keypoints, matches, stats row) of one stereo frame."""
+    t0 = time.perf_counter()
+    kl, sl = detect_and_describe(left_img, cfg.sift, cfg.adaptive)
+    kr, sr = detect_and_describe(right_img, cfg.sift, cfg.adaptive)
+    uvl = undistort_keypoints(rig.left, kl.uv_raw_px)
+    uvr = undistort_keypoints(rig.right, kr.uv_raw_px)
+    t1 = time.perf_counter()
+    m = match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo)
+    t2 = time.perf_counter()
+    _, max_range = stereo_limits(rig, cfg)
+    M_l, M_r = projection_matrices(rig)
+    ul, ur = uvl[m.left].astype(float), uvr[m.right].astype(float)
+    p_cam = triangulate(M_l, M_r, ul, ur) if m.left.size else np.zeros((0, 3))
+    # the point must be in front of both cameras and within range
+    T_rl = np.linalg.inv(rig.T_left_right)
+    z_right = p_cam @ T_rl[2, :3] + T_rl[2, 3]
+    keep = (p_cam[:, 2] > 0) & (z_right > 0) & (np.linalg.norm(p_cam, axis=1) <= max_range)
+    cov = triangulation_covariance(M_l, M_r, ul[keep], ur[keep], cfg.stereo.pixel_sigma_px)
+    t3 = time.perf_counter()
+    matches = {
+        "left": m.left[keep],
+        "right": m.right[keep],
+        "disparity_px": m.disparity_px[keep],
+        "distance": m.distance[keep],
+        "ratio": m.ratio[keep],
+        "p_cam_m": p_cam[keep],
+        "cov_cam_m2": cov,
+        "landmark_id": np.full(int(keep.sum()), -1, dtype=np.int64),
+    }
+    stats = {
+        "kp_left": len(kl.uv_raw_px),
+        "kp_right": len(kr.uv_raw_px),
+        "layers_left": sl.n_octave_layers,
+        "layers_right": sr.n_octave_layers,
+        "contrast_left": round(sl.contrast_threshold, 6),
+        "contrast_right": round(sr.contrast_threshold, 6),
+        "dog_rms_left": round(sl.dog_rms, 6),
+        "dog_rms_right": round(sr.dog_rms, 6),
+        "retried_left": int(sl.retried),
+        "retried_right": int(sr.retried),
+        "candidates_per_kp": round(m.candidates_examined / max(1, m.n_left), 3),
+        "matches": int(m.left.size),
+        "points": int(keep.sum()),
+        "t_detect_s": round(sl.detect_s + sr.detect_s, 5),
+        "t_describe_s": round(sl.describe_s + sr.describe_s, 5),
+        "t_match_s": round(t2 - t1, 5),
+        "t_triangulate_s": round(t3 - t2, 5),
+        "t_total_s": round(t3 - t0, 5),
+    }
+    return _side(kl, uvl), _side(kr, uvr), matches, stats
+
+
+# ----------------------------------------------------------------------------- workers
+
+
+def _job(args: tuple[str, int, np.ndarray, np.ndarray]) -> tuple[str, int, tuple]:
+    vehicle, stamp, left, right = args
+    return vehicle, stamp, process_frame(left, right, STATE["rigs"][vehicle], STATE["cfg"])
+
+
+def _frames(logs: LogSet, vehicles: list[str]) -> Iterator[tuple[str, int, np.ndarray, np.ndarray]]:
+    for rec in logs.records(vehicles=vehicles, roles=("left_image", "right_image")):
+        if isinstance(rec, StereoFrame):
+            yield rec.vehicle, rec.stamp_ns, to_grey_u8(rec.left.image), to_grey_u8(rec.right.image)
+
+
+# ----------------------------------------------------------------------------- stage
+
+
+def _csv_text(rows: list[dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=STATS_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+def run(
+    cfg: Config,
+    log_paths: Sequence[Path],
+    run_dir: Path,
+    *,
+    workers: int = 2,
+    force: bool = False,
+    progress: bool = False,
+) -> ExtractSummary:
+    rd = RunDir(run_dir)
+    logs = LogSet([McapLogSource(p) for p in log_paths], cfg.logs)
+    vehicles = [v for v, vt in logs.vehicles.items() if vt.has_stereo]
+    if not vehicles:
+        raise CvslamError(
+            f"{logs.names}: no vehicle with stereo images (left and right image "
+            "topics); see logs.vehicles in the config"
+        )
+    outputs = [
+        run_dir / "features" / f"{v}{ext}" for v in vehicles for ext in (".npz", "_stats.csv")
+    ]
+    plan = rd.plan("extract", cfg, ("logs", "extract"), list(log_paths), outputs, force)
+    if plan.action == "skip":
+        log.info("extract: %s is up to date (same config and inputs); --force to redo it", run_dir)
+        return ExtractSummary(run_dir, True, {})
+    rigs = {v: logs.rig(v) for v in vehicles}
+    for v, rig in rigs.items():
+        z_min, max_range = stereo_limits(rig, cfg.extract)
+        log.debug(
+            "extract %s: baseline %.3f m, %s, z_min %.2f m (HD_max %.1f px), max range %.0f m",
+            v,
+            rig.baseline_m,
+            "rectified" if rig.rectified else "unrectified",
+            z_min,
+            rig.left.fx * rig.baseline_m / z_min,
+            max_range,
+        )
+    builders = {v: FeatureSetBuilder(v, rig_calibration(rigs[v])) for v in vehicles}
+    rows: dict[str, list[dict[str, Any]]] = {v: [] for v in vehicles}
+    started = {v: 0.0 for v in vehicles}
+    total = sum(
+        logs.topic_infos[logs.vehicles[v].topic("left_image")].message_count for v in vehicles
+    )
+    t_start = time.perf_counter()
+    with tqdm(
+        total=total, desc="extract", unit="pair", disable=None if progress else True, leave=False
+    ) as bar:
+        for vehicle, stamp, (left, right, matches, stats) in ordered_map(
+            _job, _frames(logs, vehicles), workers=workers, state={"rigs": rigs, "cfg": cfg.extract}
+        ):
+            builders[vehicle].add_frame(stamp, left, right, matches)
+            rows[vehicle].append({"stamp_ns": stamp, **stats})
+            started[vehicle] += stats["t_total_s"]
+            bar.update(1)
+    wall = time.perf_counter() - t_start
+    summaries: dict[str, VehicleExtract] = {}
+    for v in vehicles:
+        fs = builders[v].build()
+        meta = {
+            "producer": f"cvslam extract {__version__}",
+            "vehicle": v,
+            "inputs": plan.inputs,
+            "config": plan.sections["extract"],
+        }
+        save_features(fs, run_dir / "features" / f"{v}.npz", meta)
+        write_text_atomic(run_dir / "features" / f"{v}_stats.csv", _csv_text(rows[v]))
+        r = rows[v]
+        n = max(1, len(r))
+        vs = logs.stats[v]
+        summaries[v] = VehicleExtract(
+            frames=len(r),
+            empty_frames=sum(1 for x in r if x["kp_left"] == 0 or x["kp_right"] == 0),
+            unpaired_left=vs.unpaired_left,
+            unpaired_right=vs.unpaired_right,
+            keypoints_per_frame=sum(x["kp_left"] + x["kp_right"] for x in r) / (2 * n),
+            matches_per_frame=sum(x["points"] for x in r) / n,
+            candidates_per_keypoint=sum(x["candidates_per_kp"] for x in r) / n,
+            wall_s=started[v],
+        )
+    rd.record(
+        "extract",
+        plan,
+        outputs,
+        {"vehicles": {v: asdict(s) for v, s in summaries.items()}, "workers": workers},
+        wall,
+    )
+    return ExtractSummary(run_dir, False, summaries)
