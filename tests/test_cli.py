@@ -276,3 +276,33 @@ def test_simulate_command(cvslam, tmp_path):
     )
     res = cvslam("simulate", tmp_path / "missing.yaml", "-o", tmp_path / "y")
     assert res.code == 1 and "missing.yaml: config file not found" in res.err
+
+
+def test_extract_command(cvslam, tmp_path):
+    synth = write_stereo_log(tmp_path / "a.mcap", n_frames=4, size=(160, 120), fx=120.0)
+    run_dir = tmp_path / "run"
+    res = cvslam("extract", synth.path, "-o", run_dir, "--workers", "1")
+    assert res.code == 0, res.err
+    assert "uav1: 4 stereo frames" in res.err
+    assert (run_dir / "features" / "uav1.npz").is_file()
+    assert (run_dir / "features" / "extract.config.yaml").is_file()
+    assert "up to date" in cvslam("extract", synth.path, "-o", run_dir).err
+    res = cvslam("extract", synth.path, "-o", run_dir, "--set", "extract.sift.sigma=2.0")
+    assert res.code == 1 and "different config (extract.sift.sigma: 1.6 -> 2.0)" in res.err
+    res = cvslam(
+        "extract",
+        synth.path,
+        "-o",
+        run_dir,
+        "--set",
+        "extract.sift.sigma=2.0",
+        "--force",
+        "--workers",
+        "1",
+    )
+    assert res.code == 0
+    res = cvslam(
+        "extract", synth.path, "-o", tmp_path / "r2", "--set", "extract.stereo.dist_ratio=1.5"
+    )
+    assert res.code == 1
+    assert "extract.stereo.dist_ratio: expected a number > 0.0 and <= 1.0, got 1.5" in res.err
