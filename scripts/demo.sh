@@ -8,6 +8,9 @@ mkdir -p "$out"
 echo "== cvslam demo: simulate the two-UAV mission (configs/scenarios/uav2_paper.yaml)"
 "$cvslam" simulate uav2_paper -o "$out/sim" --force
 "$cvslam" info "$out/sim/uav1.mcap" "$out/sim/uav2.mcap"
+echo
+echo "== cvslam demo: adaptive SIFT + stereo-constrained matching on every frame"
+"$cvslam" extract "$out/sim/uav1.mcap" "$out/sim/uav2.mcap" -o "$out/run" --force
 
 if [ -d "$data/euroc_v101_micro/mav0" ]; then
   echo
@@ -18,6 +21,7 @@ else
   echo "(the real data folder $data is absent: skipping the EuRoC import)"
 fi
 echo
-echo "Logs and ground truth are in $out/ (open the .mcap files in Foxglove or read them"
-echo "with rosbags). Still to land: extract -> fuse (cooperative NH-infinity, single and EKF"
-echo "for comparison) -> mosaic -> eval, the headline table and eval/report.html."
+echo "Logs and ground truth are in $out/sim (open the .mcap files in Foxglove or read them"
+echo "with rosbags); features in $out/run/features. Still to land: fuse (cooperative"
+echo "NH-infinity, single and EKF for comparison) -> mosaic -> eval, the headline table and"
+echo "eval/report.html."
