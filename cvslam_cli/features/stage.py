@@ -32,7 +32,7 @@ from cvslam_cli import __version__
 from cvslam_cli.config import Config, ExtractConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.features.format import FeatureSetBuilder, rig_calibration
-from cvslam_cli.features.matching import match_stereo, undistort_keypoints
+from cvslam_cli.features.matching import auto_z_min_m, match_stereo, undistort_keypoints
 from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
 from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.geometry.stereo import (
@@ -93,10 +93,8 @@ class ExtractSummary:
 
 def stereo_limits(rig: StereoRig, cfg: ExtractConfig) -> tuple[float, float]:
     """(z_min_m, max_range_m) with the automatic defaults resolved from the rig."""
-    b = rig.baseline_m
-    z_min = cfg.stereo.z_min_m or max(0.5, 4.0 * b)
-    max_range = cfg.stereo.max_range_m or 400.0 * b
-    return z_min, max_range
+    max_range = cfg.stereo.max_range_m or 400.0 * rig.baseline_m
+    return auto_z_min_m(rig, cfg.stereo.z_min_m), max_range
 
 
 # ----------------------------------------------------------------------------- one frame
