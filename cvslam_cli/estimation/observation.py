@@ -1,0 +1,144 @@
+"""The stereo observation model (paper eq. 19) with analytic Jacobians, and its inverse.
+
+A landmark m (nav frame, NED) seen by a vehicle at position p (nav) with Euler angles
+Psi = (roll, pitch, yaw) (ZYX, C_nav_body = Rz(yaw) Ry(pitch) Rx(roll)) gives four numbers,
+its ideal (undistorted) pixel in the left and the right image:
+
+    q      = C_nav_body^T (m - p)                  the landmark in the body frame
+    p_c    = R_cam_body (q - t_body_cam)           ... in camera c's optical frame
+    (u, v) = (fx x / z + cx, fy y / z + cy)        eq. 19: M^c [m; 1] with M^c = K_c [R | t]
+
+Jacobians (vectorised over landmarks):
+    d p_c / d m   = R_cam_body C^T =: A            d p_c / d p = -A
+    d q / d roll  = q x e1                          (dRx^T/droll = -[e1]x Rx^T)
+    d q / d pitch = -Rx^T (e2 x (Ry^T Rz^T w))      w = m - p
+    d q / d yaw   = -Rx^T Ry^T (e3 x (Rz^T w))
+    d (u, v) / d p_c = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]
+
+The inverse model turns a point triangulated in the left camera frame (extract's
+`match_p_cam_m`, covariance `match_cov_cam_m2`) into a nav-frame landmark with a covariance
+that includes the vehicle's pose uncertainty (Jacobians w.r.t. the point and the pose).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cvslam_cli.geometry.camera import StereoRig
+
+F64 = NDArray[np.float64]
+
+_E = np.eye(3)
+
+
+def _rx(a: float) -> F64:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _ry(a: float) -> F64:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+
+
+def _rz(a: float) -> F64:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class StereoObservationModel:
+    """Left/right cameras: K (2, 3, 3), R_cam_body (2, 3, 3), t_body_cam (2, 3) (camera
+    centres in the body frame)."""
+
+    K: F64
+    R_cam_body: F64
+    t_body_cam: F64
+
+    @classmethod
+    def from_rig(cls, rig: StereoRig) -> StereoObservationModel:
+        cams = (rig.left, rig.right)
+        return cls(
+            K=np.stack([c.K for c in cams]),
+            R_cam_body=np.stack([c.T_body_cam[:3, :3].T for c in cams]),
+            t_body_cam=np.stack([c.T_body_cam[:3, 3] for c in cams]),
+        )
+
+    def predict(self, p_nav_m: F64, euler_rad: F64, m_nav_m: F64) -> tuple[F64, F64, F64]:
+        """(N, 3) landmarks seen from pose (p, Psi) -> z (N, 4) = (u_l, v_l, u_r, v_r),
+        H_pose (N, 4, 6) w.r.t. (p, Psi), H_m (N, 4, 3) w.r.t. the landmark (eq. 19)."""
+        roll, pitch, yaw = (float(a) for a in euler_rad)
+        Rx, Ry, Rz = _rx(roll), _ry(pitch), _rz(yaw)
+        C = Rz @ Ry @ Rx  # C_nav_body
+        w = np.atleast_2d(np.asarray(m_nav_m, dtype=float)) - np.asarray(p_nav_m, dtype=float)
+        q = w @ C  # C^T w per row
+        s = w @ Rz @ Ry  # Ry^T Rz^T w
+        r = w @ Rz  # Rz^T w
+        dq = np.stack(
+            [
+                np.cross(q, _E[0]),
+                -np.cross(_E[1], s) @ Rx,  # Rx^T (.) per row == (.) @ Rx
+                -np.cross(_E[2], r) @ (Ry @ Rx),
+            ],
+            axis=2,
+        )  # (N, 3, 3): columns d q / d (roll, pitch, yaw)
+        n = w.shape[0]
+        z = np.empty((n, 4))
+        H_pose = np.empty((n, 4, 6))
+        H_m = np.empty((n, 4, 3))
+        for c in range(2):
+            R = self.R_cam_body[c]
+            pc = (q - self.t_body_cam[c]) @ R.T
+            x, y, zc = pc[:, 0], pc[:, 1], pc[:, 2]
+            K = self.K[c]
+            z[:, 2 * c] = K[0, 0] * x / zc + K[0, 1] * y / zc + K[0, 2]
+            z[:, 2 * c + 1] = K[1, 1] * y / zc + K[1, 2]
+            J = np.zeros((n, 2, 3))
+            J[:, 0, 0] = K[0, 0] / zc
+            J[:, 0, 1] = K[0, 1] / zc
+            J[:, 0, 2] = -(K[0, 0] * x + K[0, 1] * y) / zc**2
+            J[:, 1, 1] = K[1, 1] / zc
+            J[:, 1, 2] = -K[1, 1] * y / zc**2
+            A = R @ C.T  # d p_c / d m
+            JA = J @ A
+            H_m[:, 2 * c : 2 * c + 2] = JA
+            H_pose[:, 2 * c : 2 * c + 2, :3] = -JA
+            H_pose[:, 2 * c : 2 * c + 2, 3:] = J @ (R @ dq)
+        return z, H_pose, H_m
+
+    def landmark_from_camera_point(
+        self,
+        p_nav_m: F64,
+        euler_rad: F64,
+        p_cam_m: F64,
+        cov_cam_m2: F64,
+        cov_pose: F64 | None = None,
+    ) -> tuple[F64, F64]:
+        """Inverse model: (N, 3) points in the LEFT camera frame with (N, 3, 3) covariances,
+        seen from pose (p, Psi) with (6, 6) covariance `cov_pose` of (p, Psi) (None: exact
+        pose) -> (N, 3) nav-frame landmarks and (N, 3, 3) covariances
+        m = p + C (R_cam_body^T p_c + t_body_cam)."""
+        roll, pitch, yaw = (float(a) for a in euler_rad)
+        Rx, Ry, Rz = _rx(roll), _ry(pitch), _rz(yaw)
+        C = Rz @ Ry @ Rx
+        b = np.atleast_2d(p_cam_m) @ self.R_cam_body[0] + self.t_body_cam[0]  # body frame
+        m = b @ C.T + np.asarray(p_nav_m, dtype=float)
+        J_pc = C @ self.R_cam_body[0].T  # d m / d p_c
+        cov = J_pc @ np.asarray(cov_cam_m2) @ J_pc.T
+        if cov_pose is not None:
+            # d (C b) / d roll = C (e1 x b); pitch: Rz Ry (e2 x (Rx b)); yaw: Rz (e3 x (Ry Rx b))
+            d_roll = np.cross(_E[0], b) @ C.T
+            d_pitch = np.cross(_E[1], b @ Rx.T) @ (Rz @ Ry).T
+            d_yaw = np.cross(_E[2], b @ (Ry @ Rx).T) @ Rz.T
+            J_pose = np.concatenate(
+                [
+                    np.broadcast_to(np.eye(3), (len(b), 3, 3)),
+                    np.stack([d_roll, d_pitch, d_yaw], axis=2),
+                ],
+                axis=2,
+            )
+            cov = cov + J_pose @ np.asarray(cov_pose) @ np.swapaxes(J_pose, 1, 2)
+        return m, cov
