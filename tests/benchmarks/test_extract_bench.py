@@ -128,11 +128,6 @@ def kitti_log(tmp: Path) -> Log:
     return _read("KITTI clip a", [path])
 
 
-@pytest.fixture(scope="module")
-def logs(request: pytest.FixtureRequest) -> Callable[[str], Log]:
-    return lambda name: request.getfixturevalue(f"{name}_log")
-
-
 # ----------------------------------------------------------------------------- helpers
 
 
@@ -198,36 +193,31 @@ class PerFrame:
     n: int
 
 
-_PER_FRAME: dict[str, PerFrame] = {}
+def _measure(left: np.ndarray, right: np.ndarray, rig: StereoRig, cfg: ExtractConfig) -> tuple:
+    kl, _ = detect_and_describe(left, cfg.sift, cfg.adaptive)
+    kr, _ = detect_and_describe(right, cfg.sift, cfg.adaptive)
+    uvl = undistort_keypoints(rig.left, kl.uv_raw_px)
+    uvr = undistort_keypoints(rig.right, kr.uv_raw_px)
+    m = match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo)
+    t_ours = _best(lambda: match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo), 5)
+    t_bf = _best(lambda: match_brute_force(kl.desc, kr.desc, PLAIN_RATIO), 5)
+    (_, pdl), (_, pdr) = _plain_detect(left), _plain_detect(right)
+    t_bf_own = _best(lambda: match_brute_force(pdl, pdr, PLAIN_RATIO), 5)
+    f_ours = _best(lambda: process_frame(left, right, rig, cfg), 2)
+    f_plain = _best(lambda: _plain_frame(left, right, rig, cfg), 2)
+    return (
+        m.candidates_per_keypoint, m.n_right, t_ours, t_bf, t_bf_own,
+        (len(kl) + len(kr)) / 2, (len(pdl) + len(pdr)) / 2, f_ours, f_plain,
+    )  # fmt: skip
 
 
 @pytest.fixture(scope="module", params=["euroc", "sim"])
-def per_frame(request: pytest.FixtureRequest, logs: Callable[[str], Log]) -> tuple[str, PerFrame]:
-    log = logs(request.param)
+def per_frame(request: pytest.FixtureRequest) -> tuple[str, PerFrame]:
+    log: Log = request.getfixturevalue(f"{request.param}_log")
     cfg = load_config().extract
-    rows = []
-    for left, right, rig in _spread(log.frames, FRAMES_PER_DATASET):
-        kl, _ = detect_and_describe(left, cfg.sift, cfg.adaptive)
-        kr, _ = detect_and_describe(right, cfg.sift, cfg.adaptive)
-        uvl = undistort_keypoints(rig.left, kl.uv_raw_px)
-        uvr = undistort_keypoints(rig.right, kr.uv_raw_px)
-        m = match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo)
-        t_ours = _best(lambda: match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo), 5)
-        t_bf = _best(lambda: match_brute_force(kl.desc, kr.desc, PLAIN_RATIO), 5)
-        (_, pdl), (_, pdr) = _plain_detect(left), _plain_detect(right)
-        t_bf_own = _best(lambda: match_brute_force(pdl, pdr, PLAIN_RATIO), 5)
-        f_ours = _best(lambda: process_frame(left, right, rig, cfg), 2)  # noqa: B023
-        f_plain = _best(lambda: _plain_frame(left, right, rig, cfg), 2)  # noqa: B023
-        rows.append(
-            (
-                m.candidates_per_keypoint, m.n_right, t_ours, t_bf, t_bf_own,
-                (len(kl) + len(kr)) / 2, (len(pdl) + len(pdr)) / 2, f_ours, f_plain,
-            )
-        )  # fmt: skip
+    rows = [_measure(*frame, cfg) for frame in _spread(log.frames, FRAMES_PER_DATASET)]
     mean = np.mean(np.array(rows, float), axis=0)
-    result = PerFrame(*(float(x) for x in mean), n=len(rows))
-    _PER_FRAME[request.param] = result
-    return log.name, result
+    return log.name, PerFrame(*(float(x) for x in mean), n=len(rows))
 
 
 def test_candidates_per_keypoint(per_frame: tuple[str, PerFrame]) -> None:
@@ -285,8 +275,8 @@ def _startup_s(log: Log) -> float:
 
 
 @pytest.mark.parametrize("name", ["euroc", "sim"])
-def test_stage_throughput(name: str, logs: Callable[[str], Log], tmp: Path) -> None:
-    log = logs(name)
+def test_stage_throughput(name: str, request: pytest.FixtureRequest, tmp: Path) -> None:
+    log: Log = request.getfixturevalue(f"{name}_log")
     cfg = load_config()
     n_plain = min(24, len(log.frames))
     t = time.perf_counter()
@@ -320,9 +310,12 @@ def _views(sc: Scenario, world: Terrain, busy: bool, agl_m: float, n: int) -> It
     """n stereo pairs rendered straight down from `agl_m` above ground over the places whose
     camera footprint is the most uniformly smooth (busy=False) or busy (busy=True)."""
     rig = build_rig("uav1", sc.vehicles["uav1"].camera)
+    rig_cams = (rig.left, rig.right)
     rays = (pixel_rays(rig.left), pixel_rays(rig.right))
     px = world.spec.texture_px_per_m
-    weight = cv2.resize(world.urban_weight, None, fx=1 / px, fy=1 / px, interpolation=3)  # 1 m
+    weight = cv2.resize(
+        world.urban_weight, None, fx=1 / px, fy=1 / px, interpolation=cv2.INTER_AREA
+    )
     # footprint (east x north, metres) of the down-looking camera at yaw 0: image x = east
     cam = rig.left
     fw, fh = int(cam.width / cam.fx * agl_m) | 1, int(cam.height / cam.fy * agl_m) | 1
@@ -346,12 +339,13 @@ def _views(sc: Scenario, world: Terrain, busy: bool, agl_m: float, n: int) -> It
         down = -(float(world.elevation_at(north, east)) + agl_m)
         T = make_T(R_BODY_CAM_DOWN, np.array([north, east, down]))
         images = []
-        for camera, T_cam, ray in ((rig.left, T, rays[0]), (rig.right, T @ rig.T_left_right, rays[1])):  # fmt: skip
+        for camera, T_cam, ray in zip(rig_cams, (T, T @ rig.T_left_right), rays, strict=True):
             res = render_terrain_view(world, camera, T_cam, rays=ray)
             gain = 1.0 + ph.gain_sigma * rng.standard_normal()
             offset = ph.offset_sigma * rng.standard_normal()
+            noise = ph.noise_sigma_dn
             images.append(
-                photometric(res.radiance, gain=gain, offset=offset, noise_sigma=ph.noise_sigma_dn, rng=rng)  # fmt: skip
+                photometric(res.radiance, gain=gain, offset=offset, noise_sigma=noise, rng=rng)
             )
         yield images[0], images[1], rig, float(inner[r, c])
 
@@ -375,7 +369,7 @@ def _mmm(a: np.ndarray) -> str:
     return f"{a.min():.0f} / {np.median(a):.0f} / {a.max():.0f}"
 
 
-def test_adaptive_vs_fixed(sim_log: Log, tmp: Path) -> None:
+def test_adaptive_vs_fixed(sim_log: Log, request: pytest.FixtureRequest) -> None:
     adaptive = load_config().extract
     fixed = load_config(overrides=["extract.adaptive.enabled=false"]).extract
     lo, hi = adaptive.adaptive.features_min, adaptive.adaptive.features_max
@@ -393,7 +387,7 @@ def test_adaptive_vs_fixed(sim_log: Log, tmp: Path) -> None:
     }
     for name in ("euroc", "kitti"):
         try:
-            log = {"euroc": euroc_log, "kitti": kitti_log}[name].__wrapped__(tmp)  # type: ignore[attr-defined]
+            log: Log = request.getfixturevalue(f"{name}_log")
         except pytest.skip.Exception as exc:
             print(f"\n[bench] adaptive vs fixed: {name} skipped ({exc})")
             continue

@@ -1,0 +1,67 @@
+"""EKF and NH-infinity updates: NH-inf -> EKF as gamma -> inf, the Riccati form, existence."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cvslam_cli.estimation.filters import ekf_update, hinf_update
+
+RNG = np.random.default_rng(5)
+
+
+def _problem(n=30, m=8):
+    A = RNG.normal(size=(n, n))
+    P = A @ A.T / n + 0.1 * np.eye(n)
+    H = RNG.normal(size=(m, n))
+    R = np.diag(RNG.uniform(0.5, 2.0, m))
+    x = RNG.normal(size=n)
+    y, h = RNG.normal(size=m), RNG.normal(size=m)
+    return x, P, y, h, H, R
+
+
+def test_hinf_equals_ekf_as_gamma_grows():
+    x, P, y, h, H, R = _problem()
+    ekf = ekf_update(x, P, y, h, H, R)
+    for bounded in (None, np.arange(9)):
+        hinf = hinf_update(x, P, y, h, H, R, gamma=1e7, bounded=bounded)
+        np.testing.assert_allclose(hinf.x, ekf.x, atol=1e-9)
+        np.testing.assert_allclose(hinf.P, ekf.P, atol=1e-9)
+        assert not hinf.gamma_raised
+        inf = hinf_update(x, P, y, h, H, R, gamma=np.inf, bounded=bounded)
+        np.testing.assert_allclose(inf.P, ekf.P, atol=1e-9)
+    assert ekf.nis > 0
+
+
+def test_hinf_is_the_riccati_posterior_and_more_cautious():
+    x, P, y, h, H, R = _problem()
+    bounded = np.arange(9)
+    gamma = 3.0
+    res = hinf_update(x, P, y, h, H, R, gamma=gamma, bounded=bounded)
+    assert not res.gamma_raised
+    L = np.eye(len(x))[bounded]
+    expected = np.linalg.inv(np.linalg.inv(P) + H.T @ np.linalg.inv(R) @ H - L.T @ L / gamma**2)
+    np.testing.assert_allclose(res.P, expected, rtol=1e-8, atol=1e-10)
+    ekf = ekf_update(x, P, y, h, H, R)
+    # the H-infinity covariance is larger (more cautious) than the EKF's, and still SPD
+    assert np.all(np.linalg.eigvalsh(res.P - ekf.P) > -1e-12)
+    assert np.all(np.linalg.eigvalsh(res.P) > 0)
+
+
+def test_existence_failure_raises_gamma_visibly():
+    x, P, y, h, H, R = _problem()
+    res = hinf_update(x, P, y, h, H, R, gamma=0.01, bounded=np.arange(9))
+    assert res.gamma_raised and res.gamma > 0.01
+    assert np.all(np.linalg.eigvalsh(res.P) > 0)
+    assert np.allclose(res.P, res.P.T)
+
+
+def test_covariance_stays_spd_over_many_updates():
+    x, P, _, _, _, _ = _problem(n=20, m=4)
+    for _ in range(300):
+        H = RNG.normal(size=(4, 20))
+        R = 0.5 * np.eye(4)
+        res = hinf_update(
+            x, P, RNG.normal(size=4), np.zeros(4), H, R, gamma=5.0, bounded=np.arange(6)
+        )
+        x, P = res.x, res.P + 0.01 * np.eye(20)  # a little process noise each step
+        assert np.allclose(P, P.T) and np.linalg.eigvalsh(P)[0] > 0
