@@ -10,9 +10,7 @@ its ideal (undistorted) pixel in the left and the right image:
 
 Jacobians (vectorised over landmarks):
     d p_c / d m   = R_cam_body C^T =: A            d p_c / d p = -A
-    d q / d roll  = q x e1                          (dRx^T/droll = -[e1]x Rx^T)
-    d q / d pitch = -Rx^T (e2 x (Ry^T Rz^T w))      w = m - p
-    d q / d yaw   = -Rx^T Ry^T (e3 x (Rz^T w))
+    d q / d Psi_k = (d C / d Psi_k)^T (m - p)      (`rotations.euler_zyx_derivatives`)
     d (u, v) / d p_c = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]
 
 The inverse model turns a point triangulated in the left camera frame (extract's
@@ -28,25 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.geometry.camera import StereoRig
+from cvslam_cli.geometry.rotations import euler_zyx_derivatives, euler_zyx_to_matrix
 
 F64 = NDArray[np.float64]
-
-_E = np.eye(3)
-
-
-def _rx(a: float) -> F64:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def _ry(a: float) -> F64:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
-
-
-def _rz(a: float) -> F64:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,21 +52,11 @@ class StereoObservationModel:
     def predict(self, p_nav_m: F64, euler_rad: F64, m_nav_m: F64) -> tuple[F64, F64, F64]:
         """(N, 3) landmarks seen from pose (p, Psi) -> z (N, 4) = (u_l, v_l, u_r, v_r),
         H_pose (N, 4, 6) w.r.t. (p, Psi), H_m (N, 4, 3) w.r.t. the landmark (eq. 19)."""
-        roll, pitch, yaw = (float(a) for a in euler_rad)
-        Rx, Ry, Rz = _rx(roll), _ry(pitch), _rz(yaw)
-        C = Rz @ Ry @ Rx  # C_nav_body
+        C = euler_zyx_to_matrix(*euler_rad)  # C_nav_body
+        D = euler_zyx_derivatives(*euler_rad)  # d C / d (roll, pitch, yaw)
         w = np.atleast_2d(np.asarray(m_nav_m, dtype=float)) - np.asarray(p_nav_m, dtype=float)
         q = w @ C  # C^T w per row
-        s = w @ Rz @ Ry  # Ry^T Rz^T w
-        r = w @ Rz  # Rz^T w
-        dq = np.stack(
-            [
-                np.cross(q, _E[0]),
-                -np.cross(_E[1], s) @ Rx,  # Rx^T (.) per row == (.) @ Rx
-                -np.cross(_E[2], r) @ (Ry @ Rx),
-            ],
-            axis=2,
-        )  # (N, 3, 3): columns d q / d (roll, pitch, yaw)
+        dq = np.stack([w @ D[k] for k in range(3)], axis=2)  # (N, 3, 3): d q / d Psi
         n = w.shape[0]
         z = np.empty((n, 4))
         H_pose = np.empty((n, 4, 6))
@@ -121,22 +93,18 @@ class StereoObservationModel:
         seen from pose (p, Psi) with (6, 6) covariance `cov_pose` of (p, Psi) (None: exact
         pose) -> (N, 3) nav-frame landmarks and (N, 3, 3) covariances
         m = p + C (R_cam_body^T p_c + t_body_cam)."""
-        roll, pitch, yaw = (float(a) for a in euler_rad)
-        Rx, Ry, Rz = _rx(roll), _ry(pitch), _rz(yaw)
-        C = Rz @ Ry @ Rx
+        C = euler_zyx_to_matrix(*euler_rad)
         b = np.atleast_2d(p_cam_m) @ self.R_cam_body[0] + self.t_body_cam[0]  # body frame
         m = b @ C.T + np.asarray(p_nav_m, dtype=float)
         J_pc = C @ self.R_cam_body[0].T  # d m / d p_c
         cov = J_pc @ np.asarray(cov_cam_m2) @ J_pc.T
         if cov_pose is not None:
-            # d (C b) / d roll = C (e1 x b); pitch: Rz Ry (e2 x (Rx b)); yaw: Rz (e3 x (Ry Rx b))
-            d_roll = np.cross(_E[0], b) @ C.T
-            d_pitch = np.cross(_E[1], b @ Rx.T) @ (Rz @ Ry).T
-            d_yaw = np.cross(_E[2], b @ (Ry @ Rx).T) @ Rz.T
+            D = euler_zyx_derivatives(*euler_rad)
+            d_psi = np.stack([b @ D[k].T for k in range(3)], axis=2)  # d (C b) / d Psi
             J_pose = np.concatenate(
                 [
                     np.broadcast_to(np.eye(3), (len(b), 3, 3)),
-                    np.stack([d_roll, d_pitch, d_yaw], axis=2),
+                    d_psi,
                 ],
                 axis=2,
             )

@@ -77,6 +77,26 @@ def euler_zyx_to_matrix(roll: float, pitch: float, yaw: float) -> F64:
     )
 
 
+def euler_zyx_derivatives(roll: float, pitch: float, yaw: float) -> F64:
+    """(3, 3, 3): d C_nav_body / d (roll, pitch, yaw) for C = Rz(yaw) Ry(pitch) Rx(roll):
+    Rz Ry Rx [e1]x, Rz Ry [e2]x Rx, Rz [e3]x Ry Rx."""
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll),
+        np.sin(roll),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(yaw),
+        np.sin(yaw),
+    )
+    Rx = np.array([[1.0, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    Ry = np.array([[cp, 0, sp], [0, 1.0, 0], [-sp, 0, cp]])
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1.0]])
+    e1x = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    e2x = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])
+    e3x = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])
+    return np.stack([Rz @ Ry @ Rx @ e1x, Rz @ Ry @ e2x @ Rx, Rz @ e3x @ Ry @ Rx])
+
+
 def matrix_to_euler_zyx(C_nav_body: F64) -> F64:
     """(roll, pitch, yaw) of a body -> nav rotation matrix."""
     C = np.asarray(C_nav_body, dtype=float)

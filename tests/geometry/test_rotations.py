@@ -44,3 +44,16 @@ def test_euler_zyx_round_trip_and_yaw_meaning():
 def test_transform_inverse():
     T = make_T(euler_zyx_to_matrix(0.1, -0.2, 0.3), [1.0, 2.0, 3.0])
     np.testing.assert_allclose(T @ invert_T(T), np.eye(4), atol=1e-15)
+
+
+def test_euler_derivatives_equal_finite_differences():
+    from cvslam_cli.geometry.rotations import euler_zyx_derivatives
+
+    rpy = np.array([0.3, -0.4, 2.0])
+    D = euler_zyx_derivatives(*rpy)
+    h = 1e-7
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        fd = (euler_zyx_to_matrix(*(rpy + d)) - euler_zyx_to_matrix(*(rpy - d))) / (2 * h)
+        np.testing.assert_allclose(D[k], fd, atol=1e-8)
