@@ -1,0 +1,54 @@
+"""INS motion model (eq. 1): Jacobians equal finite differences; integrating the simulator's
+noise-free IMU with it follows the true trajectory (first-order scheme: centimetres)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cvslam_cli.estimation.motion import InsNoise, ins_process_noise, ins_step
+from cvslam_cli.sim.imu import true_imu
+from cvslam_cli.sim.trajectory import waypoint_trajectory
+
+
+@pytest.mark.parametrize("n", [9, 15])
+def test_jacobians_equal_finite_differences(n):
+    rng = np.random.default_rng(2)
+    x = np.concatenate([[5.0, -3.0, -80.0], [9.0, 0.5, -0.3], [0.1, -0.2, 1.3]])
+    if n == 15:
+        x = np.concatenate([x, rng.normal(0, 0.05, 3), rng.normal(0, 0.01, 3)])
+    f, w, dt = np.array([0.3, -0.2, -9.7]), np.array([0.02, -0.05, 0.1]), 0.005
+    _, F, G = ins_step(x, f, w, dt)
+    h = 1e-6
+    for k in range(n):
+        d = np.zeros(n)
+        d[k] = h
+        fd = (ins_step(x + d, f, w, dt)[0] - ins_step(x - d, f, w, dt)[0]) / (2 * h)
+        np.testing.assert_allclose(F[:, k], fd, atol=1e-8)
+    # noise inputs: accelerometer and gyro noise act like errors of f and w
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        fd_a = (ins_step(x, f + d, w, dt)[0] - ins_step(x, f - d, w, dt)[0]) / (2 * h)
+        fd_g = (ins_step(x, f, w + d, dt)[0] - ins_step(x, f, w - d, dt)[0]) / (2 * h)
+        np.testing.assert_allclose(G[:, k], fd_a, atol=1e-8)
+        np.testing.assert_allclose(G[:, 3 + k], fd_g, atol=1e-8)
+    Q = ins_process_noise(InsNoise(2e-3, 1.7e-4, 3e-3, 1.9e-5), dt, n == 15)
+    assert Q.shape == (G.shape[1], G.shape[1])
+
+
+def test_noise_free_imu_follows_the_trajectory():
+    traj = waypoint_trajectory(
+        np.array([[0, 0, -80], [100, 20, -85], [150, 120, -80], [40, 160, -75]], float),
+        10.0,
+        kind="uav",
+    )
+    t = np.arange(0.0, 10.0, 0.005)
+    m = traj.sample(t)
+    gyro, acc = true_imu(m)
+    x = np.concatenate([m.p_nav_m[0], m.v_body_m_s[0], m.euler_rad[0]])
+    for k in range(len(t) - 1):
+        x, _, _ = ins_step(x, acc[k], gyro[k], t[k + 1] - t[k])
+    err = np.linalg.norm(x[:3] - m.p_nav_m[-1])
+    assert err < 0.5, err  # first-order Euler steps at 200 Hz over 10 s
+    assert np.allclose(x[6:9], m.euler_rad[-1], atol=5e-3)
