@@ -58,8 +58,8 @@ def matrix_to_quat_xyzw(R: F64) -> F64:
     return out.reshape((*R.shape[:-2], 4))
 
 
-def euler_zyx_to_matrix(roll: float, pitch: float, yaw: float) -> F64:
-    """C_nav_body from ZYX Euler angles (paper's C^n_b)."""
+def _elementary(roll: float, pitch: float, yaw: float) -> tuple[F64, F64, F64]:
+    """Rx(roll), Ry(pitch), Rz(yaw)."""
     cr, sr, cp, sp, cy, sy = (
         np.cos(roll),
         np.sin(roll),
@@ -68,29 +68,23 @@ def euler_zyx_to_matrix(roll: float, pitch: float, yaw: float) -> F64:
         np.cos(yaw),
         np.sin(yaw),
     )
-    return np.array(
-        [
-            [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
-            [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
-            [-sp, sr * cp, cr * cp],
-        ]
+    return (
+        np.array([[1.0, 0, 0], [0, cr, -sr], [0, sr, cr]]),
+        np.array([[cp, 0, sp], [0, 1.0, 0], [-sp, 0, cp]]),
+        np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1.0]]),
     )
+
+
+def euler_zyx_to_matrix(roll: float, pitch: float, yaw: float) -> F64:
+    """C_nav_body = Rz(yaw) Ry(pitch) Rx(roll) from ZYX Euler angles (paper's C^n_b)."""
+    Rx, Ry, Rz = _elementary(roll, pitch, yaw)
+    return Rz @ Ry @ Rx
 
 
 def euler_zyx_derivatives(roll: float, pitch: float, yaw: float) -> F64:
     """(3, 3, 3): d C_nav_body / d (roll, pitch, yaw) for C = Rz(yaw) Ry(pitch) Rx(roll):
     Rz Ry Rx [e1]x, Rz Ry [e2]x Rx, Rz [e3]x Ry Rx."""
-    cr, sr, cp, sp, cy, sy = (
-        np.cos(roll),
-        np.sin(roll),
-        np.cos(pitch),
-        np.sin(pitch),
-        np.cos(yaw),
-        np.sin(yaw),
-    )
-    Rx = np.array([[1.0, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1.0, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1.0]])
+    Rx, Ry, Rz = _elementary(roll, pitch, yaw)
     e1x = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
     e2x = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])
     e3x = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])

@@ -229,6 +229,12 @@ def _is_number(text: str) -> bool:
     return True
 
 
+def first_non_unit(norms: F64, tol: float = 1e-2) -> int | None:
+    """Index of the first quaternion norm further than `tol` from 1, or None."""
+    bad = np.flatnonzero(np.abs(norms - 1.0) > tol)
+    return int(bad[0]) if bad.size else None
+
+
 def read_tum(path: Path) -> PoseTable:
     """TUM trajectory file: `t x y z qx qy qz qw` per line (t in seconds, whitespace
     separated, '#' comments). Poses T_world_body as in the file; stamps rounded to ns."""
@@ -257,10 +263,10 @@ def read_tum(path: Path) -> PoseTable:
     arr = np.asarray(rows, dtype=float)
     q = arr[:, 3:7]
     norms = np.linalg.norm(q, axis=1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-2)
-    if bad.size:
+    bad = first_non_unit(norms)
+    if bad is not None:
         raise DatasetError(
-            f"{path}: line {lines[bad[0]]}: quaternion norm {norms[bad[0]]:.4f} "
+            f"{path}: line {lines[bad]}: quaternion norm {norms[bad]:.4f} "
             "is not 1 (expected qx qy qz qw in columns 5-8)"
         )
     return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3], q / norms[:, None])

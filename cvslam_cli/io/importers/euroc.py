@@ -39,6 +39,7 @@ from cvslam_cli.io.importers.common import (
     check_rig,
     check_vehicle_name,
     data_lines,
+    first_non_unit,
     read_stamped_csv,
     read_text,
     read_tum,
@@ -323,11 +324,11 @@ def read_ground_truth(gt_dir: Path) -> tuple[PoseTable | None, str]:
         )
         q_wxyz = values[:, 3:7]
         norms = np.linalg.norm(q_wxyz, axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-2)
-        if bad.size:
+        bad = first_non_unit(norms)
+        if bad is not None:
             raise DatasetError(
-                f"{csv_path}: row {bad[0] + 1}: quaternion q_RS (columns 5-8, "
-                f"w x y z) has norm {norms[bad[0]]:.4f}, expected 1"
+                f"{csv_path}: row {bad + 1}: quaternion q_RS (columns 5-8, "
+                f"w x y z) has norm {norms[bad]:.4f}, expected 1"
             )
         world = PoseTable(stamps, values[:, :3], q_wxyz[:, [1, 2, 3, 0]] / norms[:, None])
         source = str(csv_path)
