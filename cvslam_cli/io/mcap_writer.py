@@ -61,6 +61,80 @@ def camera_info_fields(cam: CameraModel, stamp_ns: int) -> dict[str, Any]:
     }
 
 
+def pose_stamped_fields(stamp_ns: int, p_m: Any, q_xyzw: Any, frame_id: str) -> dict[str, Any]:
+    """geometry_msgs/msg/PoseStamped fields."""
+    return {
+        "header": header(stamp_ns, frame_id),
+        "pose": {"position": _vec(p_m), "orientation": _quat(q_xyzw)},
+    }
+
+
+def path_fields(
+    stamp_ns: int, stamps_ns: Any, p_m: Any, q_xyzw: Any, frame_id: str
+) -> dict[str, Any]:
+    """nav_msgs/msg/Path fields: header at `stamp_ns`, one PoseStamped per row of `stamps_ns`
+    (N,), `p_m` (N, 3), `q_xyzw` (N, 4)."""
+    return {
+        "header": header(stamp_ns, frame_id),
+        "poses": [
+            pose_stamped_fields(int(t), p, q, frame_id)
+            for t, p, q in zip(
+                np.asarray(stamps_ns).reshape(-1),
+                np.asarray(p_m, dtype=float).reshape(-1, 3),
+                np.asarray(q_xyzw, dtype=float).reshape(-1, 4),
+                strict=True,
+            )
+        ],
+    }
+
+
+# sensor_msgs/msg/PointField datatype constants by NumPy dtype
+POINT_FIELD_DATATYPES: dict[np.dtype[Any], int] = {
+    np.dtype("<i1"): 1,
+    np.dtype("<u1"): 2,
+    np.dtype("<i2"): 3,
+    np.dtype("<u2"): 4,
+    np.dtype("<i4"): 5,
+    np.dtype("<u4"): 6,
+    np.dtype("<f4"): 7,
+    np.dtype("<f8"): 8,
+}
+
+
+def point_cloud2_fields(stamp_ns: int, frame_id: str, cloud: np.ndarray) -> dict[str, Any]:
+    """sensor_msgs/msg/PointCloud2 fields of `cloud`, a (N,) NumPy structured array of
+    little-endian scalar fields (e.g. x, y, z float32): one row, `point_step` the record
+    size, PointField offsets from the dtype. `is_dense` when no float field holds NaN/inf."""
+    cloud = np.ascontiguousarray(cloud).reshape(-1)
+    if cloud.dtype.names is None:
+        raise ValueError("point cloud: expected a structured array (named fields)")
+    fields = []
+    dense = True
+    for name in cloud.dtype.names:
+        dt, offset = cloud.dtype.fields[name][:2]
+        datatype = POINT_FIELD_DATATYPES.get(dt)
+        if datatype is None:
+            raise ValueError(
+                f"point cloud field {name!r}: dtype {dt} is not a little-endian "
+                "int8/16/32, uint8/16/32, float32 or float64 scalar"
+            )
+        fields.append({"name": name, "offset": int(offset), "datatype": datatype, "count": 1})
+        if dt.kind == "f":
+            dense = dense and bool(np.isfinite(cloud[name]).all())
+    step = cloud.dtype.itemsize
+    return {
+        "header": header(stamp_ns, frame_id),
+        "height": 1,
+        "width": len(cloud),
+        "fields": fields,
+        "is_bigendian": False,
+        "point_step": step,
+        "row_step": step * len(cloud),
+        "data": cloud.tobytes(),
+        "is_dense": dense,
+    }
+
+
 _IMU_TAIL = struct.Struct("<37d")
 
 
@@ -321,5 +395,33 @@ class LogWriter:
                     for parent, child, T in transforms
                 ]
             },
+            stamp_ns,
+        )
+
+    def write_path(
+        self,
+        topic: str,
+        stamp_ns: int,
+        stamps_ns: Any,
+        p_m: Any,
+        q_xyzw: Any,
+        frame_id: str,
+    ) -> None:
+        """One nav_msgs/msg/Path at `stamp_ns` holding every pose (see `path_fields`)."""
+        self.write(
+            topic,
+            "nav_msgs/msg/Path",
+            path_fields(stamp_ns, stamps_ns, p_m, q_xyzw, frame_id),
+            stamp_ns,
+        )
+
+    def write_point_cloud(
+        self, topic: str, stamp_ns: int, cloud: np.ndarray, frame_id: str
+    ) -> None:
+        """A sensor_msgs/msg/PointCloud2 of a structured array (see `point_cloud2_fields`)."""
+        self.write(
+            topic,
+            "sensor_msgs/msg/PointCloud2",
+            point_cloud2_fields(stamp_ns, frame_id, cloud),
             stamp_ns,
         )

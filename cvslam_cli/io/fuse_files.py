@@ -1,0 +1,460 @@
+"""The output files of `cvslam fuse` (DESIGN.md section 5; described in docs/fuse_outputs.md).
+
+- `map.csv`: the landmark map in full precision (`write_map_csv` / `read_map_csv`, exact);
+- `map.ply`: the same map as a binary point cloud for CloudCompare, MeshLab, Open3D;
+- pose covariance `.npz`: the 6x6 covariance of each estimated pose (versioned format);
+- `result.mcap`: ROS 2 messages for viewers (Foxglove, RViz through rosbag2): poses, paths
+  and the map as a point cloud;
+- `write_csv_atomic`: any table (timeline, events) as CSV, floats that read back exactly.
+
+Every writer goes to `<name>.partial` and renames when complete; every reader raises a
+one-line `CvslamError` naming the file for anything it cannot use.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from cvslam_cli.errors import CvslamError
+from cvslam_cli.io.mcap_writer import LogWriter
+from cvslam_cli.io.names import NAV_FRAME_ID, vehicle_names
+from cvslam_cli.io.npz import save_npz
+from cvslam_cli.io.rundir import write_text_atomic
+from cvslam_cli.io.trajectory import PoseTable
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+# -- CSV ------------------------------------------------------------------------------------
+
+
+def write_csv_atomic(path: Path, frame: pd.DataFrame) -> None:
+    """Write `frame` as CSV (no index column, `\\n` line ends, NaN as `nan`) to
+    `<name>.partial`, then rename. Floats are written as the shortest text that reads back
+    to the same float64 (pandas' default `repr` formatting, kept explicitly)."""
+    text = frame.to_csv(index=False, lineterminator="\n", float_format=None, na_rep="nan")
+    write_text_atomic(path, text)
+
+
+# -- the landmark map -----------------------------------------------------------------------
+
+MAP_COLUMNS = (
+    "id",
+    "x_m",
+    "y_m",
+    "z_m",
+    "std_x_m",
+    "std_y_m",
+    "std_z_m",
+    "observers",
+    "n_observations",
+    "first_seen_ns",
+    "last_seen_ns",
+    "in_state",
+)
+OBSERVER_SEPARATOR = ";"
+
+
+def _as_int(name: str, value: object, shape: tuple[int, ...]) -> I64:
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iu" and arr.size:
+        raise ValueError(f"MapTable.{name}: expected integers, got dtype {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if arr.shape != shape:
+        raise ValueError(f"MapTable.{name}: expected shape {shape}, got {arr.shape}")
+    return arr
+
+
+def _as_float(name: str, value: object, shape: tuple[int, ...]) -> F64:
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iuf" and arr.size:
+        raise ValueError(f"MapTable.{name}: expected real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if arr.shape != shape:
+        raise ValueError(f"MapTable.{name}: expected shape {shape}, got {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class MapTable:
+    """The landmark map at the end of `fuse`, N landmarks, nav frame (NED), metres.
+
+    - `landmark_id` (N,) int64, unique;
+    - `p_nav_m` (N, 3) float64 position;
+    - `std_m` (N, 3) float64 standard deviations (sqrt of the covariance diagonal);
+    - `observers` N strings: the vehicles that observed the landmark, joined with ';'
+      (e.g. "uav1;uav2");
+    - `n_observations` (N,) int64 observations used;
+    - `first_seen_ns`, `last_seen_ns` (N,) int64 stamps of the first and last observation;
+    - `in_state` (N,) bool: still in the filter state at the end (False: evicted earlier).
+
+    Arrays are converted to these dtypes; a wrong shape or kind is a ValueError.
+    """
+
+    landmark_id: I64
+    p_nav_m: F64
+    std_m: F64
+    observers: tuple[str, ...]
+    n_observations: I64
+    first_seen_ns: I64
+    last_seen_ns: I64
+    in_state: BoolArray
+
+    def __post_init__(self) -> None:
+        ids = np.asarray(self.landmark_id)
+        if ids.ndim != 1:
+            raise ValueError(f"MapTable.landmark_id: expected shape (N,), got {ids.shape}")
+        n = len(ids)
+        set_ = object.__setattr__
+        set_(self, "landmark_id", _as_int("landmark_id", ids, (n,)))
+        set_(self, "p_nav_m", _as_float("p_nav_m", self.p_nav_m, (n, 3)))
+        set_(self, "std_m", _as_float("std_m", self.std_m, (n, 3)))
+        for name in ("n_observations", "first_seen_ns", "last_seen_ns"):
+            set_(self, name, _as_int(name, getattr(self, name), (n,)))
+        in_state = np.asarray(self.in_state)
+        if in_state.dtype != np.bool_ and in_state.size:
+            raise ValueError(f"MapTable.in_state: expected booleans, got dtype {in_state.dtype}")
+        if in_state.shape != (n,):
+            raise ValueError(f"MapTable.in_state: expected shape ({n},), got {in_state.shape}")
+        set_(self, "in_state", in_state.astype(np.bool_))
+        observers = tuple(self.observers)
+        if len(observers) != n or not all(isinstance(o, str) for o in observers):
+            raise ValueError(
+                f"MapTable.observers: expected {n} strings (one per landmark), "
+                f"got {len(observers)} items"
+            )
+        set_(self, "observers", observers)
+        if len(np.unique(self.landmark_id)) != n:
+            ids_sorted = np.sort(self.landmark_id)
+            dup = int(ids_sorted[np.flatnonzero(np.diff(ids_sorted) == 0)[0]])
+            raise ValueError(f"MapTable.landmark_id: id {dup} appears more than once")
+
+    def __len__(self) -> int:
+        return len(self.landmark_id)
+
+    @property
+    def max_std_m(self) -> F64:
+        """(N,) the largest of the three standard deviations of each landmark."""
+        return self.std_m.max(axis=1) if len(self) else np.zeros(0)
+
+
+def map_frame(table: MapTable) -> pd.DataFrame:
+    """`table` as a DataFrame with the `map.csv` columns (`MAP_COLUMNS`)."""
+    return pd.DataFrame(
+        {
+            "id": table.landmark_id,
+            "x_m": table.p_nav_m[:, 0],
+            "y_m": table.p_nav_m[:, 1],
+            "z_m": table.p_nav_m[:, 2],
+            "std_x_m": table.std_m[:, 0],
+            "std_y_m": table.std_m[:, 1],
+            "std_z_m": table.std_m[:, 2],
+            "observers": pd.Series(table.observers, dtype=object),
+            "n_observations": table.n_observations,
+            "first_seen_ns": table.first_seen_ns,
+            "last_seen_ns": table.last_seen_ns,
+            "in_state": table.in_state,
+        },
+        columns=list(MAP_COLUMNS),
+    )
+
+
+def write_map_csv(path: Path, table: MapTable) -> None:
+    """Write `map.csv` (columns `MAP_COLUMNS`, one landmark per row, floats exact,
+    `in_state` as True/False). `read_map_csv` gives back an equal table."""
+    write_csv_atomic(path, map_frame(table))
+
+
+_BOOL_TEXT = {"true": True, "1": True, "false": False, "0": False}
+
+
+def read_map_csv(path: Path) -> MapTable:
+    """Read `map.csv` as written by `write_map_csv` (extra columns are ignored; column order
+    is free). `CvslamError` naming the file, and the column and line, for anything unusable."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CvslamError(f"{path}: map file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CvslamError(f"{path}: cannot be read as a map CSV ({exc})") from None
+    reader = csv.reader(io.StringIO(text))
+    rows = [(reader.line_num, r) for r in reader if r]  # (line number, fields), blanks skipped
+    if not rows:
+        raise CvslamError(f"{path}: empty file, expected a header row {','.join(MAP_COLUMNS)}")
+    head = [h.strip() for h in rows[0][1]]
+    missing = [c for c in MAP_COLUMNS if c not in head]
+    if missing:
+        raise CvslamError(
+            f"{path}: missing column(s) {', '.join(missing)} (expected {','.join(MAP_COLUMNS)})"
+        )
+    body = rows[1:]
+    for no, r in body:
+        if len(r) != len(head):
+            raise CvslamError(f"{path}: line {no}: {len(r)} fields, the header has {len(head)}")
+    index = {c: head.index(c) for c in MAP_COLUMNS}
+
+    def column(name: str, parse: type[int] | type[float]) -> list[int] | list[float]:
+        out = []
+        for no, r in body:
+            cell = r[index[name]].strip()
+            try:
+                out.append(parse(cell))
+            except ValueError:
+                what = "an integer" if parse is int else "a number"
+                raise CvslamError(
+                    f"{path}: line {no}: column {name}: expected {what}, got {cell!r}"
+                ) from None
+        return out
+
+    in_state = []
+    for no, r in body:
+        cell = r[index["in_state"]].strip().lower()
+        if cell not in _BOOL_TEXT:
+            raise CvslamError(
+                f"{path}: line {no}: column in_state: expected True or False, "
+                f"got {r[index['in_state']]!r}"
+            )
+        in_state.append(_BOOL_TEXT[cell])
+
+    def floats(*names: str) -> F64:
+        return np.array([column(n, float) for n in names], dtype=np.float64).T.reshape(-1, 3)
+
+    try:
+        return MapTable(
+            landmark_id=np.array(column("id", int), dtype=np.int64),
+            p_nav_m=floats("x_m", "y_m", "z_m"),
+            std_m=floats("std_x_m", "std_y_m", "std_z_m"),
+            observers=tuple(r[index["observers"]] for _, r in body),
+            n_observations=np.array(column("n_observations", int), dtype=np.int64),
+            first_seen_ns=np.array(column("first_seen_ns", int), dtype=np.int64),
+            last_seen_ns=np.array(column("last_seen_ns", int), dtype=np.int64),
+            in_state=np.array(in_state, dtype=bool),
+        )
+    except (ValueError, OverflowError) as exc:
+        raise CvslamError(f"{path}: not a usable map ({exc})") from None
+
+
+# -- PLY ------------------------------------------------------------------------------------
+
+PLY_VERTEX_DTYPE = np.dtype(
+    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("id", "<i4"), ("std", "<f4"), ("n_obs", "<i4")]
+)
+_PLY_TYPES = {"<f4": "float", "<i4": "int"}
+_INT32 = np.iinfo(np.int32)
+
+
+def _int32_column(name: str, values: I64) -> NDArray[np.int32]:
+    if values.size and (values.min() < _INT32.min or values.max() > _INT32.max):
+        raise ValueError(f"{name}: values outside the int32 range of the PLY/point cloud field")
+    return values.astype(np.int32)
+
+
+def map_vertices(table: MapTable) -> np.ndarray:
+    """(N,) structured array `PLY_VERTEX_DTYPE`: x y z (float32, nav frame, m), id,
+    std (float32, the largest of the three standard deviations, m), n_obs."""
+    v = np.empty(len(table), dtype=PLY_VERTEX_DTYPE)
+    v["x"], v["y"], v["z"] = (table.p_nav_m[:, k].astype(np.float32) for k in range(3))
+    v["id"] = _int32_column("landmark id", table.landmark_id)
+    v["std"] = table.max_std_m.astype(np.float32)
+    v["n_obs"] = _int32_column("n_observations", table.n_observations)
+    return v
+
+
+def write_map_ply(path: Path, table: MapTable) -> None:
+    """Write `map.ply`: binary little-endian PLY 1.0, one `vertex` element per landmark with
+    float x y z, int id, float std (largest of the 3 std devs, m), int n_obs. Positions are
+    float32 (mm-level at km range): `map.csv` has them in full precision."""
+    vertices = map_vertices(table)
+    lines = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment cvslam landmark map: nav frame (NED), metres",
+        "comment std: largest of the 3 position standard deviations [m]; n_obs: observations",
+        f"element vertex {len(vertices)}",
+        *(
+            f"property {_PLY_TYPES[PLY_VERTEX_DTYPE.fields[name][0].str]} {name}"
+            for name in PLY_VERTEX_DTYPE.names or ()
+        ),
+        "end_header",
+    ]
+    data = ("\n".join(lines) + "\n").encode("ascii") + vertices.tobytes()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+# -- pose covariances -----------------------------------------------------------------------
+
+POSE_COV_FORMAT = "cvslam.pose_covariance"
+POSE_COV_VERSION = 1
+POSE_COV_COMPONENTS = ("x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")
+
+
+def _check_pose_cov(stamps_ns: np.ndarray, cov: np.ndarray) -> None:
+    if stamps_ns.ndim != 1 or stamps_ns.dtype.kind not in "iu":
+        raise ValueError(
+            f"pose covariances: stamps_ns: expected (F,) integers, "
+            f"got {stamps_ns.dtype} of shape {stamps_ns.shape}"
+        )
+    if cov.shape != (len(stamps_ns), 6, 6) or cov.dtype.kind not in "iuf":
+        raise ValueError(
+            f"pose covariances: cov: expected ({len(stamps_ns)}, 6, 6) numbers, "
+            f"got {cov.dtype} of shape {cov.shape}"
+        )
+
+
+def save_pose_covariances(path: Path, stamps_ns: I64, cov: F64) -> None:
+    """Write the covariance of each estimated pose: `stamps_ns` (F,) int64, `cov` (F, 6, 6)
+    float64 over (x, y, z [m] in the nav frame, roll, pitch, yaw [rad], ZYX Euler). An
+    uncompressed, byte-reproducible .npz with `format`, `version` and `components` entries."""
+    stamps = np.asarray(stamps_ns)
+    c = np.asarray(cov)
+    _check_pose_cov(stamps, c)
+    save_npz(
+        path,
+        {
+            "format": np.array(POSE_COV_FORMAT),
+            "version": np.array(POSE_COV_VERSION),
+            "components": np.array(POSE_COV_COMPONENTS),
+            "stamps_ns": stamps.astype(np.int64),
+            "cov": c.astype(np.float64),
+        },
+    )
+
+
+def load_pose_covariances(path: Path) -> tuple[I64, F64]:
+    """(stamps_ns (F,) int64, cov (F, 6, 6) float64) from `save_pose_covariances`'s file.
+    `CvslamError` naming the file when it is missing, another format or version, or corrupt."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except FileNotFoundError:
+        raise CvslamError(f"{path}: pose covariance file not found") from None
+    except (OSError, ValueError) as exc:
+        raise CvslamError(f"{path}: not a readable pose covariance file ({exc})") from None
+    fmt = str(data.get("format", ""))
+    if fmt != POSE_COV_FORMAT:
+        raise CvslamError(
+            f"{path}: not a cvslam pose covariance file (format {fmt or 'missing'!r})"
+        )
+    try:
+        version = int(data.get("version", -1))
+    except (TypeError, ValueError):
+        version = -1
+    if version != POSE_COV_VERSION:
+        raise CvslamError(
+            f"{path}: pose covariance format version {version}, this cvslam reads version "
+            f"{POSE_COV_VERSION}; run `cvslam fuse --force` again"
+        )
+    try:
+        stamps, cov = data["stamps_ns"], data["cov"]
+        _check_pose_cov(stamps, cov)
+    except (KeyError, ValueError) as exc:
+        raise CvslamError(f"{path}: corrupt pose covariance file ({exc})") from None
+    return stamps.astype(np.int64), cov.astype(np.float64)
+
+
+# -- result.mcap ----------------------------------------------------------------------------
+
+MAP_TOPIC = "/map/landmarks"
+RESULT_METADATA_NAME = "cvslam.fuse"
+CLOUD_DTYPE = np.dtype(
+    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("std", "<f4"), ("id", "<i4"), ("n_obs", "<i4")]
+)
+
+
+def pose_topic(vehicle: str) -> str:
+    return f"/{vehicle}/fuse/pose"
+
+
+def path_topic(vehicle: str) -> str:
+    return f"/{vehicle}/fuse/path"
+
+
+def deadreckoning_path_topic(vehicle: str) -> str:
+    return f"/{vehicle}/deadreckoning/path"
+
+
+def map_cloud(table: MapTable) -> np.ndarray:
+    """(N,) structured array `CLOUD_DTYPE` for the PointCloud2 of the map."""
+    v = map_vertices(table)
+    cloud = np.empty(len(table), dtype=CLOUD_DTYPE)
+    for name in CLOUD_DTYPE.names or ():
+        cloud[name] = v[name]
+    return cloud
+
+
+def write_result_mcap(
+    path: Path,
+    trajectories: Mapping[str, PoseTable],
+    landmarks: MapTable,
+    *,
+    deadreckoning: Mapping[str, PoseTable] | None = None,
+    frame_id: str = NAV_FRAME_ID,
+    metadata: Mapping[str, str] | None = None,
+) -> None:
+    """Write `result.mcap` (ROS 2, CDR) for viewers, all in `frame_id` (the NED nav frame):
+
+    - `/<vehicle>/fuse/pose` geometry_msgs/msg/PoseStamped, one per estimated pose;
+    - `/<vehicle>/fuse/path` nav_msgs/msg/Path, one message at the vehicle's last stamp
+      holding the whole trajectory; `/<vehicle>/deadreckoning/path` the same for
+      `deadreckoning` when given;
+    - `/map/landmarks` sensor_msgs/msg/PointCloud2 (x y z std float32, id n_obs int32), one
+      message at the last stamp of all trajectories;
+    - metadata record `cvslam.fuse`: frame_id, nav_frame NED, vehicles, landmarks count, and
+      `metadata`.
+
+    Vehicles with no pose get no messages. Temporary name, renamed when complete.
+    """
+    dr = dict(deadreckoning or {})
+    for vehicle in (*trajectories, *dr):
+        vehicle_names(vehicle)  # a CvslamError for a name that cannot be part of a topic
+    last = [int(t.stamps_ns[-1]) for t in (*trajectories.values(), *dr.values()) if len(t)]
+    if not last and len(landmarks):  # no pose at all: the map's last observation
+        last = [int(landmarks.last_seen_ns.max())]
+    map_stamp = max(last, default=0)
+    cloud = map_cloud(landmarks)
+    info = {
+        "frame_id": frame_id,
+        "nav_frame": "NED",
+        "vehicles": OBSERVER_SEPARATOR.join(trajectories),
+        "landmarks": str(len(landmarks)),
+        **{str(k): str(v) for k, v in (metadata or {}).items()},
+    }
+    with LogWriter(path) as w:
+        for vehicle, table in trajectories.items():
+            if not len(table):
+                continue
+            for t, p, q in zip(table.stamps_ns, table.p_m, table.q_xyzw, strict=True):
+                w.write_pose(pose_topic(vehicle), int(t), p, q, frame_id)
+            w.write_path(
+                path_topic(vehicle),
+                int(table.stamps_ns[-1]),
+                table.stamps_ns,
+                table.p_m,
+                table.q_xyzw,
+                frame_id,
+            )
+        for vehicle, table in dr.items():
+            if len(table):
+                w.write_path(
+                    deadreckoning_path_topic(vehicle),
+                    int(table.stamps_ns[-1]),
+                    table.stamps_ns,
+                    table.p_m,
+                    table.q_xyzw,
+                    frame_id,
+                )
+        w.write_point_cloud(MAP_TOPIC, map_stamp, cloud, frame_id)
+        w.add_metadata(RESULT_METADATA_NAME, info)
