@@ -52,3 +52,17 @@ def test_noise_free_imu_follows_the_trajectory():
     err = np.linalg.norm(x[:3] - m.p_nav_m[-1])
     assert err < 0.5, err  # first-order Euler steps at 200 Hz over 10 s
     assert np.allclose(x[6:9], m.euler_rad[-1], atol=5e-3)
+
+
+def test_bias_states_with_zero_bias_match_the_nine_state_model():
+    x9 = np.concatenate([[5.0, -3.0, -80.0], [9.0, 0.5, -0.3], [0.1, -0.2, 1.3]])
+    x15 = np.concatenate([x9, np.zeros(6)])
+    f, w, dt = np.array([0.3, -0.2, -9.7]), np.array([0.02, -0.05, 0.1]), 0.005
+    x9_new, F9, G9 = ins_step(x9, f, w, dt)
+    x15_new, F15, G15 = ins_step(x15, f, w, dt)
+    np.testing.assert_array_equal(x15_new[:9], x9_new)
+    np.testing.assert_array_equal(F15[:9, :9], F9)
+    np.testing.assert_array_equal(G15[:9, :6], G9)
+    np.testing.assert_array_equal(x15_new[9:], 0.0)
+    with pytest.raises(ValueError, match="expected 9 or 15 numbers"):
+        ins_step(x9[:6], f, w, dt)
