@@ -336,6 +336,89 @@ def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cf
         log.info("wrote %s", run_dir / "features")
 
 
+# ----------------------------------------------------------------------------- fuse
+
+
+@cli.command()
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option(
+    "--filter",
+    "filter_kind",
+    type=click.Choice(["hinf", "ekf"]),
+    default=None,
+    help="Filter (default: fuse.filter, hinf). Outputs go to RUN_DIR/fuse (hinf) or "
+    "RUN_DIR/fuse_ekf.",
+)
+@click.option(
+    "--single",
+    is_flag=True,
+    help="Each vehicle in its own filter (for comparison with the cooperative default); "
+    "outputs in RUN_DIR/fuse_single (fuse_ekf_single).",
+)
+@click.option(
+    "--log",
+    "log_paths",
+    multiple=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Log with the motion data (repeatable); default: the logs the features came from.",
+)
+@click.option(
+    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
+)
+@config_options
+def fuse(
+    run_dir: Path,
+    filter_kind: str | None,
+    single: bool,
+    log_paths: tuple[Path, ...],
+    force: bool,
+    cfg: Config,
+) -> None:
+    """Cooperative stereo VSLAM: one NH-infinity filter (or EKF) over all vehicles' features.
+
+    Writes trajectories, dead reckoning, pose covariances, the landmark map, timeline,
+    events and result.mcap to RUN_DIR/fuse (docs/fuse_outputs.md).
+    """
+    from cvslam_cli.estimation.stage import run
+
+    summary = run(
+        cfg,
+        run_dir,
+        filter_kind=filter_kind,
+        single=single,
+        log_paths=list(log_paths),
+        force=force,
+        progress=log.isEnabledFor(logging.INFO),
+    )
+    if summary.skipped:
+        return
+    write_resolved_config(cfg, summary.out_dir / "fuse.yaml")
+    for name, v in summary.vehicles.items():
+        log.info(
+            "%s (%s): %d frames, %.0f m; final position error %.2f m (dead reckoning %.2f m), "
+            "RMSE %.2f m (%.2f m), final sigma %.2f m, %d loop closure(s)",
+            name,
+            v.model,
+            v.frames,
+            v.distance_m,
+            v.final_error_m,
+            v.final_error_deadreckoning_m,
+            v.rmse_m,
+            v.rmse_deadreckoning_m,
+            v.final_sigma_m,
+            v.loop_closures,
+        )
+    log.info(
+        "%s: %d landmarks mapped, %.1fx real time (%.1f s)%s; wrote %s",
+        summary.filter,
+        summary.landmarks,
+        summary.realtime_factor,
+        summary.wall_s,
+        f", gamma raised in {summary.gamma_raised} updates" if summary.gamma_raised else "",
+        summary.out_dir,
+    )
+
+
 # ----------------------------------------------------------------------------- entry
 
 

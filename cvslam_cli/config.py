@@ -161,9 +161,95 @@ class ExtractConfig:
 
 
 @dataclass(frozen=True)
+class HinfConfig:
+    """Nonlinear H-infinity filter (DESIGN.md section 2): Q_hat = c_w^2 Q, R_hat = c_v^2 R,
+    bound gamma on the vehicle states or on all states."""
+
+    gamma: float = opt(5.0, lo=0.0, lo_open=True)
+    c_w: float = opt(1.1, lo=1.0)
+    c_v: float = opt(1.1, lo=1.0)
+    bound: Literal["vehicle", "all"] = "vehicle"
+    gamma_margin: float = opt(0.1, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Motion models and their process noise."""
+
+    model: Literal["auto", "ins", "odometry", "constant_velocity"] = "auto"
+    fallback_constant_velocity: bool = False
+    imu_biases: bool = True
+    accel_noise_density: float = opt(2.0e-3, lo=0.0, lo_open=True)
+    gyro_noise_density: float = opt(1.6968e-4, lo=0.0, lo_open=True)
+    accel_random_walk: float = opt(3.0e-3, lo=0.0)
+    gyro_random_walk: float = opt(1.9393e-5, lo=0.0)
+    odometry_speed_noise_density: float = opt(0.05, lo=0.0, lo_open=True)
+    odometry_yaw_rate_noise_density: float = opt(0.01, lo=0.0, lo_open=True)
+    cv_accel_noise_density: float = opt(2.0, lo=0.0, lo_open=True)
+    cv_angular_accel_noise_density: float = opt(0.5, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class InitialConfig:
+    """Initial vehicle state and its uncertainty (standard deviations)."""
+
+    source: Literal["ground_truth", "origin"] = "ground_truth"
+    position_sigma_m: float = opt(0.1, lo=0.0, lo_open=True)
+    attitude_sigma_rad: float = opt(0.005, lo=0.0, lo_open=True)
+    velocity_sigma_m_s: float = opt(0.1, lo=0.0, lo_open=True)
+    angular_rate_sigma_rad_s: float = opt(0.05, lo=0.0, lo_open=True)
+    accel_bias_sigma_m_s2: float = opt(0.05, lo=0.0, lo_open=True)
+    gyro_bias_sigma_rad_s: float = opt(2.0e-3, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Data association of stereo matches with mapped landmarks."""
+
+    pixel_sigma_px: float = opt(0.5, lo=0.0, lo_open=True)
+    gate_probability: float = opt(0.999, lo=0.5, hi=1.0, lo_open=True)
+    descriptor_ratio: float = opt(0.8, lo=0.0, hi=1.0, lo_open=True)
+    max_descriptor_distance: float = opt(350.0, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Landmarks in the filter state and their management."""
+
+    max_landmarks: int = opt(200, lo=1)
+    max_updates_per_frame: int = opt(40, lo=1)
+    target_tracked: int = opt(30, lo=0)
+    max_new_per_frame: int = opt(15, lo=0)
+    max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)
+    loop_closure_gap_s: float = opt(20.0, lo=0.0, lo_open=True)
+    loop_closure_min_landmarks: int = opt(3, lo=1)
+
+
+@dataclass(frozen=True)
+class DivergenceConfig:
+    """A vehicle's filter has diverged when its mean NIS per measurement over the last
+    `window` updated frames exceeds `nis_per_dof_max` (1 is nominal)."""
+
+    window: int = opt(20, lo=1)
+    nis_per_dof_max: float = opt(10.0, lo=1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class FuseConfig:
+    filter: Literal["hinf", "ekf"] = "hinf"
+    hinf: HinfConfig = opt(HinfConfig())
+    motion: MotionConfig = opt(MotionConfig())
+    initial: InitialConfig = opt(InitialConfig())
+    association: AssociationConfig = opt(AssociationConfig())
+    map: MapConfig = opt(MapConfig())
+    divergence: DivergenceConfig = opt(DivergenceConfig())
+
+
+@dataclass(frozen=True)
 class Config:
     logs: LogsConfig = opt(LogsConfig())
     extract: ExtractConfig = opt(ExtractConfig())
+    fuse: FuseConfig = opt(FuseConfig())
 
 
 # --------------------------------------------------------------------------- building

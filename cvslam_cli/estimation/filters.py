@@ -1,23 +1,31 @@
 """Measurement updates of the EKF and of the nonlinear H-infinity filter (DESIGN.md section 2).
 
 Both take the predicted state x (n,), covariance P (n, n), measurement y (m,), predicted
-measurement h (m,), Jacobian H (m, n) and noise covariance R (m, m); the H-infinity filter
-uses the scaled R_hat = c_v^2 R (the caller scales) and a bound gamma on a chosen set of
-states (indices `bounded`, the matrix L selecting them; all states when None):
+measurement h (m,), Jacobian H (m, n) (or only its non-zero columns `cols`) and noise
+covariance R (m, m); the H-infinity filter uses the scaled R_hat = c_v^2 R (the caller
+scales) and a bound gamma on a chosen set of states (indices `bounded`, the matrix L
+selecting them; all states when None). The paper's corrector (DESIGN.md section 2):
 
     K  = P H^T (H P H^T + R_hat)^-1,   x+ = x + K (y - h)
     S  = [[L P L^T - gamma^2 I, L P H^T], [H P L^T, H P H^T + R_hat]]
-    P+ = P - P [L^T H^T] S^-1 [L; H] P
+    P+ = P - P [L^T H^T] S^-1 [L; H] P  =  (P^-1 + H^T R_hat^-1 H - gamma^-2 L^T L)^-1
 
-which exists only while P^-1 + H^T R_hat^-1 H - gamma^-2 L^T L is positive definite, i.e.
-(with P_ekf = (P^-1 + H^T R_hat^-1 H)^-1, the EKF posterior) while the largest eigenvalue
-of L P_ekf L^T is below gamma^2. When it is not, gamma is raised to
-sqrt((1 + margin) * lambda_max) for this update and the result says so: the filter never
-produces a covariance that is not positive definite. As gamma -> infinity S^-1 keeps only
-its EKF corner and P+ is the EKF posterior (a test, not an assumption).
+is evaluated here through the EKF posterior P_ekf = P - K H P = (P^-1 + H^T R_hat^-1 H)^-1
+and the matrix inversion lemma (the same P+, to rounding; a test compares both forms):
 
-With L selecting the vehicle states (l of them), every product is n x (l + m): the update
-costs O(n^2 (l + m)), not O(n^3).
+    P+ = P_ekf + P_ekf L^T (gamma^2 I - L P_ekf L^T)^-1 L P_ekf
+
+It exists only while P_ekf^-1 - gamma^-2 L^T L is positive definite, i.e. while the largest
+eigenvalue of L P_ekf L^T is below gamma^2: the matrix inverted above is then positive
+definite. When it is not, gamma is raised to sqrt((1 + margin) * lambda_max) for this update
+and the result says so: the filter never produces a covariance that is not positive
+definite. As gamma -> infinity the correction vanishes and P+ is the EKF posterior (a test,
+not an assumption).
+
+Cost: P H^T is n x m (only `cols` of P are read), the EKF posterior one n x n x m product,
+the bound one n x n x l product: O(n^2 (m + l)); with L selecting the vehicle states this
+is O(n^2) in the state size. With S = C C^T (Cholesky), V = P H^T C^-T gives
+K = V C^-1 and P_ekf = P - V V^T.
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -43,21 +52,35 @@ class UpdateResult:
     gamma_raised: bool = False
 
 
-def _innovation(P: F64, H: F64, R: F64, y: F64, h: F64) -> tuple[F64, F64, F64, float]:
-    PHt = P @ H.T
-    S = H @ PHt + R
-    nu = y - h
-    S_inv_nu = np.linalg.solve(S, nu)
-    return PHt, S, nu, float(nu @ S_inv_nu)
+def _whitened(
+    P: F64, H: F64, R: F64, y: F64, h: F64, cols: I64 | None
+) -> tuple[F64, F64, F64, F64, F64, float]:
+    """P H^T (n, m), S = H P H^T + R and its Cholesky factor C (lower), V = P H^T C^-T,
+    w = C^-1 (y - h), NIS = |w|^2. H may touch only the state columns `cols` (then H is
+    (m, len(cols)) and P H^T costs n * len(cols) * m)."""
+    if cols is None:
+        PHt = P @ H.T
+        S = H @ PHt + R
+    else:
+        PHt = P[:, cols] @ H.T
+        S = H @ PHt[cols] + R
+    C = np.linalg.cholesky(0.5 * (S + S.T))
+    V = solve_triangular(C, PHt.T, lower=True).T  # (n, m)
+    w = solve_triangular(C, y - h, lower=True)
+    return PHt, S, C, V, w, float(w @ w)
 
 
-def ekf_update(x: F64, P: F64, y: F64, h: F64, H: F64, R: F64) -> UpdateResult:
-    """EKF update, Joseph form P+ = (I - K H) P (I - K H)^T + K R K^T."""
-    PHt, S, nu, nis = _innovation(P, H, R, y, h)
-    K = np.linalg.solve(S, PHt.T).T
-    A = np.eye(len(x)) - K @ H
-    P_new = A @ P @ A.T + K @ R @ K.T
-    return UpdateResult(x + K @ nu, 0.5 * (P_new + P_new.T), nis)
+def ekf_update(
+    x: F64, P: F64, y: F64, h: F64, H: F64, R: F64, cols: I64 | None = None
+) -> UpdateResult:
+    """EKF update in Joseph form P+ = (I - K H) P (I - K H)^T + K R K^T, evaluated without
+    forming I - K H: P+ = P - K (P H^T)^T - (P H^T) K^T + K S K^T, O(n^2 m).
+    `cols`: the state columns H touches (H is (m, len(cols))); None: H is (m, n)."""
+    PHt, S, C, V, w, nis = _whitened(P, H, R, y, h, cols)
+    K = solve_triangular(C, V.T, lower=True, trans="T").T  # V C^-1 = P H^T S^-1
+    D = S @ K.T - PHt.T  # (m, n), zero in exact arithmetic: K S K^T - K PHt^T = K D
+    P_new = P + K @ D - PHt @ K.T
+    return UpdateResult(x + V @ w, 0.5 * (P_new + P_new.T), nis)
 
 
 def hinf_update(
@@ -70,28 +93,24 @@ def hinf_update(
     gamma: float,
     bounded: I64 | None = None,
     margin: float = 0.1,
+    cols: I64 | None = None,
 ) -> UpdateResult:
     """Nonlinear H-infinity update (module docstring); `bounded`: indices of the states the
-    bound is put on (None: all)."""
+    bound is put on (None: all); `cols`: the state columns H touches (as in `ekf_update`)."""
     n = len(x)
     idx = np.arange(n) if bounded is None else np.asarray(bounded, dtype=np.int64)
-    l_dim = len(idx)
-    PHt, S_y, nu, nis = _innovation(P, H, R_hat, y, h)
-    K = np.linalg.solve(S_y, PHt.T).T
-    # existence: lambda_max(L P_ekf L^T) < gamma^2, P_ekf = P - K H P (only its L block)
-    P_ekf_LL = P[np.ix_(idx, idx)] - K[idx] @ PHt[idx].T
-    lam = float(np.linalg.eigvalsh(0.5 * (P_ekf_LL + P_ekf_LL.T))[-1])
-    raised = np.isfinite(gamma) and lam >= gamma**2 / (1.0 + margin)
+    _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols)
+    P_ekf = P - V @ V.T
+    P_ekf_L = P_ekf[:, idx]  # P_ekf L^T, (n, l)
+    P_ekf_LL = 0.5 * (P_ekf_L[idx] + P_ekf_L[idx].T)
+    lam = float(np.linalg.eigvalsh(P_ekf_LL)[-1])
+    raised = bool(np.isfinite(gamma) and lam >= gamma**2 / (1.0 + margin))
     if raised:
         gamma = float(np.sqrt((1.0 + margin) * lam))
+    x_new = x + V @ w
     if not np.isfinite(gamma):
-        P_new = P - K @ PHt.T
-        return UpdateResult(x + K @ nu, 0.5 * (P_new + P_new.T), nis, gamma, False)
-    W = np.concatenate([P[:, idx], PHt], axis=1)  # P [L^T H^T], (n, l + m)
-    Sigma = np.empty((l_dim + len(y), l_dim + len(y)))
-    Sigma[:l_dim, :l_dim] = P[np.ix_(idx, idx)] - gamma**2 * np.eye(l_dim)
-    Sigma[:l_dim, l_dim:] = PHt[idx]
-    Sigma[l_dim:, :l_dim] = PHt[idx].T
-    Sigma[l_dim:, l_dim:] = S_y
-    P_new = P - W @ np.linalg.solve(Sigma, W.T)
-    return UpdateResult(x + K @ nu, 0.5 * (P_new + P_new.T), nis, gamma, bool(raised))
+        return UpdateResult(x_new, 0.5 * (P_ekf + P_ekf.T), nis, gamma, False)
+    B = np.linalg.cholesky(gamma**2 * np.eye(len(idx)) - P_ekf_LL)  # exists: lam < gamma^2
+    G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n)
+    P_new = P_ekf + G.T @ G
+    return UpdateResult(x_new, 0.5 * (P_new + P_new.T), nis, gamma, raised)

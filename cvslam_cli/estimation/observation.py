@@ -81,6 +81,20 @@ class StereoObservationModel:
             H_pose[:, 2 * c : 2 * c + 2, 3:] = J @ (R @ dq)
         return z, H_pose, H_m
 
+    def landmark_jacobians(
+        self, p_nav_m: F64, euler_rad: F64, p_cam_m: F64
+    ) -> tuple[F64, F64, F64]:
+        """Inverse model m = p + C (R_cam_body^T p_c + t_body_cam) for (N, 3) points in the
+        LEFT camera frame: m (N, 3), d m / d (p, Psi) (N, 3, 6), d m / d p_c (3, 3)."""
+        C = euler_zyx_to_matrix(*euler_rad)
+        b = np.atleast_2d(p_cam_m) @ self.R_cam_body[0] + self.t_body_cam[0]  # body frame
+        m = b @ C.T + np.asarray(p_nav_m, dtype=float)
+        D = euler_zyx_derivatives(*euler_rad)
+        J_pose = np.empty((len(b), 3, 6))
+        J_pose[:, :, :3] = np.eye(3)
+        J_pose[:, :, 3:] = np.stack([b @ D[k].T for k in range(3)], axis=2)  # d (C b) / d Psi
+        return m, J_pose, C @ self.R_cam_body[0].T
+
     def landmark_from_camera_point(
         self,
         p_nav_m: F64,
@@ -93,20 +107,8 @@ class StereoObservationModel:
         seen from pose (p, Psi) with (6, 6) covariance `cov_pose` of (p, Psi) (None: exact
         pose) -> (N, 3) nav-frame landmarks and (N, 3, 3) covariances
         m = p + C (R_cam_body^T p_c + t_body_cam)."""
-        C = euler_zyx_to_matrix(*euler_rad)
-        b = np.atleast_2d(p_cam_m) @ self.R_cam_body[0] + self.t_body_cam[0]  # body frame
-        m = b @ C.T + np.asarray(p_nav_m, dtype=float)
-        J_pc = C @ self.R_cam_body[0].T  # d m / d p_c
+        m, J_pose, J_pc = self.landmark_jacobians(p_nav_m, euler_rad, p_cam_m)
         cov = J_pc @ np.asarray(cov_cam_m2) @ J_pc.T
         if cov_pose is not None:
-            D = euler_zyx_derivatives(*euler_rad)
-            d_psi = np.stack([b @ D[k].T for k in range(3)], axis=2)  # d (C b) / d Psi
-            J_pose = np.concatenate(
-                [
-                    np.broadcast_to(np.eye(3), (len(b), 3, 3)),
-                    d_psi,
-                ],
-                axis=2,
-            )
             cov = cov + J_pose @ np.asarray(cov_pose) @ np.swapaxes(J_pose, 1, 2)
         return m, cov

@@ -65,3 +65,47 @@ def test_covariance_stays_spd_over_many_updates():
         )
         x, P = res.x, res.P + 0.01 * np.eye(20)  # a little process noise each step
         assert np.allclose(P, P.T) and np.linalg.eigvalsh(P)[0] > 0
+
+
+def _paper_corrector(P, H, R, gamma, bounded):
+    """The paper's corrector with the block matrix Sigma, written out directly."""
+    L = np.eye(len(P))[bounded]
+    W = np.concatenate([P @ L.T, P @ H.T], axis=1)
+    Sigma = np.block([[L @ P @ L.T - gamma**2 * np.eye(len(bounded)), L @ P @ H.T],
+                      [H @ P @ L.T, H @ P @ H.T + R]])  # fmt: skip
+    return P - W @ np.linalg.solve(Sigma, W.T)
+
+
+def test_hinf_equals_the_papers_block_form():
+    x, P, y, h, H, R = _problem()
+    for bounded in (np.arange(9), np.arange(30)):
+        res = hinf_update(x, P, y, h, H, R, gamma=4.0, bounded=bounded)
+        assert not res.gamma_raised
+        np.testing.assert_allclose(res.P, _paper_corrector(P, H, R, 4.0, bounded), atol=1e-10)
+
+
+def test_sparse_columns_equal_the_dense_jacobian():
+    x, P, y, h, _, R = _problem()
+    cols = np.array([0, 1, 2, 17, 18, 19, 25])
+    Hs = RNG.normal(size=(len(y), len(cols)))
+    H = np.zeros((len(y), len(x)))
+    H[:, cols] = Hs
+    for a, b in (
+        (ekf_update(x, P, y, h, H, R), ekf_update(x, P, y, h, Hs, R, cols=cols)),
+        (
+            hinf_update(x, P, y, h, H, R, 3.0, np.arange(9)),
+            hinf_update(x, P, y, h, Hs, R, 3.0, np.arange(9), cols=cols),
+        ),
+    ):
+        np.testing.assert_allclose(a.x, b.x, atol=1e-12)
+        np.testing.assert_allclose(a.P, b.P, atol=1e-12)
+        assert abs(a.nis - b.nis) < 1e-9
+
+
+def test_joseph_form_equals_the_textbook_joseph_form():
+    x, P, y, h, H, R = _problem()
+    res = ekf_update(x, P, y, h, H, R)
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    A = np.eye(len(x)) - K @ H
+    np.testing.assert_allclose(res.P, A @ P @ A.T + K @ R @ K.T, atol=1e-10)
+    np.testing.assert_allclose(res.x, x + K @ (y - h), atol=1e-10)

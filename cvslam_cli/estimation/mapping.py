@@ -1,0 +1,115 @@
+"""Map management: the book of every landmark ever mapped, and which are in the filter state.
+
+Each landmark has a global id (in order of creation) and keeps, whether it is in the state or
+not: its descriptor (from the frame that created it), which vehicles observed it (a bitmask),
+how often, when it was first and last seen (per vehicle), and its estimate. The state holds
+at most `max_landmarks`; when a frame needs room, landmarks are evicted (marginalised out,
+`JointState.remove_landmarks`) and keep their last estimate in the output map.
+
+Eviction rule (keep what is most useful for later re-observation): landmarks observed in
+the current frame are never evicted; of the others, the ones with the fewest observations go
+first (a landmark tracked over many frames is distinctive and well placed, and is the one a
+loop closure or another vehicle will find again; one seen once or twice rarely is), ties
+broken by the largest position uncertainty (the least a re-observation would correct).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cvslam_cli.features.format import DESCRIPTOR_SIZE
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+NEVER = np.iinfo(np.int64).min
+
+
+class LandmarkBook:
+    """Per-landmark records, indexed by global landmark id; `slot_ids` (L,) maps the state's
+    landmark slots to ids."""
+
+    def __init__(self, n_vehicles: int, capacity: int = 1024) -> None:
+        self.n_vehicles = n_vehicles
+        self.count = 0
+        self.desc = np.zeros((capacity, DESCRIPTOR_SIZE), dtype=np.uint8)
+        self.observers = np.zeros(capacity, dtype=np.int64)  # bit i: vehicle i
+        self.n_obs = np.zeros(capacity, dtype=np.int64)
+        self.first_seen_ns = np.zeros(capacity, dtype=np.int64)
+        self.last_seen_ns = np.full((capacity, n_vehicles), NEVER, dtype=np.int64)
+        self.true_id = np.full(capacity, -1, dtype=np.int64)
+        self.p_nav_m = np.zeros((capacity, 3))
+        self.std_m = np.zeros((capacity, 3))
+        self.slot_ids = np.zeros(0, dtype=np.int64)
+
+    def _grow(self, need: int) -> None:
+        cap = len(self.n_obs)
+        if need <= cap:
+            return
+        new_cap = max(need, 2 * cap)
+        for name in (
+            "desc",
+            "observers",
+            "n_obs",
+            "first_seen_ns",
+            "last_seen_ns",
+            "true_id",
+            "p_nav_m",
+            "std_m",
+        ):
+            old = getattr(self, name)
+            fill = NEVER if name == "last_seen_ns" else (-1 if name == "true_id" else 0)
+            arr = np.full((new_cap, *old.shape[1:]), fill, dtype=old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+    def add(
+        self,
+        desc: NDArray[np.uint8],
+        vehicle: int,
+        stamp_ns: int,
+        true_id: I64,
+    ) -> I64:
+        """Register k new landmarks (appended to the state's slots). Returns their ids."""
+        k = len(desc)
+        ids = np.arange(self.count, self.count + k)
+        self._grow(self.count + k)
+        self.desc[ids] = desc
+        self.observers[ids] = 1 << vehicle
+        self.n_obs[ids] = 1
+        self.first_seen_ns[ids] = stamp_ns
+        self.last_seen_ns[ids, vehicle] = stamp_ns
+        self.true_id[ids] = true_id
+        self.count += k
+        self.slot_ids = np.concatenate([self.slot_ids, ids])
+        return ids
+
+    def observe(self, ids: I64, vehicle: int, stamp_ns: int) -> None:
+        self.n_obs[ids] += 1
+        self.observers[ids] |= 1 << vehicle
+        self.last_seen_ns[ids, vehicle] = stamp_ns
+
+    def eviction_order(self, protected_slots: I64, trace_cov: F64) -> I64:
+        """Slots that may be evicted, most evictable first (module docstring). trace_cov (L,)."""
+        L = len(self.slot_ids)
+        ok = np.ones(L, dtype=bool)
+        ok[np.asarray(protected_slots, dtype=np.int64)] = False
+        cand = np.flatnonzero(ok)
+        n_obs = self.n_obs[self.slot_ids[cand]]
+        return cand[np.lexsort((-trace_cov[cand], n_obs))]
+
+    def store_estimates(self, slots: I64, p_nav_m: F64, cov: F64) -> None:
+        """Record the current estimate (k, 3) and covariance (k, 3, 3) of landmarks in slots."""
+        ids = self.slot_ids[np.asarray(slots, dtype=np.int64)]
+        self.p_nav_m[ids] = p_nav_m
+        self.std_m[ids] = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+
+    def keep_slots(self, kept: I64) -> None:
+        """After `JointState.remove_landmarks`: slot i now holds old slot kept[i]."""
+        self.slot_ids = self.slot_ids[kept]
+
+    def observer_names(self, names: list[str]) -> tuple[str, ...]:
+        out = []
+        for bits in self.observers[: self.count]:
+            out.append(";".join(n for i, n in enumerate(names) if bits >> i & 1))
+        return tuple(out)

@@ -1,0 +1,545 @@
+"""`cvslam fuse`: the filter over the run's features and the logs' motion data.
+
+Inputs: `<run>/features/<vehicle>.npz` (extract, or the simulator's landmark mode) and the
+logs they came from (recorded in the feature files and `run.yaml`; `*.mcap` beside
+`features/` for a simulator output directory; or given explicitly) for the motion data (IMU,
+odometry) and the initial pose (first ground-truth pose, `fuse.initial.source`).
+
+Outputs, in `<run>/fuse/` (NH-infinity) or `<run>/fuse_ekf/` (`--filter ekf`), written to a
+temporary folder renamed when complete (docs/fuse_outputs.md): per vehicle `<v>.tum`,
+`<v>_deadreckoning.tum`, `<v>_pose_cov.npz`; `map.csv`, `map.ply`, `timeline.csv`,
+`events.csv`, `result.mcap`.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.stats import chi2
+from threadpoolctl import threadpool_limits
+from tqdm import tqdm
+
+from cvslam_cli import __version__
+from cvslam_cli.config import Config, FuseConfig
+from cvslam_cli.errors import CvslamError
+from cvslam_cli.estimation.motion import InsNoise
+from cvslam_cli.estimation.motion_models import (
+    ConstantVelocityModel,
+    InitialUncertainty,
+    InsModel,
+    MotionModel,
+    OdometryModel,
+    odometry_input,
+)
+from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.slam import (
+    Slam,
+    SlamResult,
+    SlamSettings,
+    VehicleInput,
+    VehicleTrack,
+    dead_reckoning_track,
+    merge_results,
+)
+from cvslam_cli.estimation.state import FilterSettings
+from cvslam_cli.features.format import FeatureSet, stereo_rig
+from cvslam_cli.geometry.rotations import (
+    euler_zyx_to_matrix,
+    matrix_to_euler_zyx,
+    matrix_to_quat_xyzw,
+    quat_xyzw_to_matrix,
+)
+from cvslam_cli.io.features_file import load_features
+from cvslam_cli.io.fuse_files import (
+    MapTable,
+    save_pose_covariances,
+    write_csv_atomic,
+    write_map_csv,
+    write_map_ply,
+    write_result_mcap,
+)
+from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.records import ImuSample, OdometryRecord, PoseRecord
+from cvslam_cli.io.rundir import RunDir
+from cvslam_cli.io.trajectory import PoseTable, write_tum
+
+log = logging.getLogger("cvslam.fuse")
+
+
+@dataclass(frozen=True)
+class VehicleFuse:
+    frames: int
+    model: str
+    distance_m: float
+    final_error_m: float  # nan without ground truth
+    final_error_deadreckoning_m: float
+    rmse_m: float
+    rmse_deadreckoning_m: float
+    final_sigma_m: float
+    loop_closures: int
+
+
+@dataclass(frozen=True)
+class FuseSummary:
+    out_dir: Path
+    skipped: bool
+    filter: str
+    single: bool
+    vehicles: dict[str, VehicleFuse]
+    landmarks: int
+    wall_s: float
+    realtime_factor: float
+    gamma_raised: int
+
+
+def output_name(filter_kind: str, single: bool) -> str:
+    """`fuse` for the default (cooperative NH-infinity); `fuse_ekf`, `fuse_single`,
+    `fuse_ekf_single` for the comparison runs."""
+    return (
+        "fuse"
+        + ("" if filter_kind == "hinf" else f"_{filter_kind}")
+        + ("_single" if single else "")
+    )
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def _feature_files(run_dir: Path) -> list[Path]:
+    fdir = run_dir / "features"
+    files = sorted(fdir.glob("*.npz")) if fdir.is_dir() else []
+    if not files:
+        raise CvslamError(
+            f"{fdir}: no feature files (<vehicle>.npz); run `cvslam extract LOG... -o "
+            f"{run_dir}` first"
+        )
+    return files
+
+
+def find_logs(run_dir: Path, metas: Sequence[dict[str, Any]]) -> list[Path]:
+    """The logs the features were made from: the feature files' recorded inputs (extract),
+    else `*.mcap` beside `features/` (a simulator output directory)."""
+    paths: list[Path] = []
+    for meta in metas:
+        for rec in meta.get("inputs", []):
+            p = Path(rec["path"])
+            if p not in paths:
+                paths.append(p)
+    if not paths:
+        paths = sorted(run_dir.glob("*.mcap"))
+    missing = [p for p in paths if not p.exists()]
+    if missing:
+        raise CvslamError(
+            f"{missing[0]}: log recorded as the features' input not found; give the logs with --log"
+        )
+    return paths
+
+
+@dataclass(frozen=True, eq=False)
+class _Motion:
+    imu_stamps: np.ndarray
+    imu: np.ndarray  # (K, 6) accel, gyro
+    odom_stamps: np.ndarray
+    odom: np.ndarray  # (K, 2)
+    gt: PoseTable
+
+
+def _read_motion(logs: LogSet, vehicles: list[str]) -> dict[str, _Motion]:
+    imu: dict[str, list[tuple[int, np.ndarray]]] = {v: [] for v in vehicles}
+    odo: dict[str, list[tuple[int, np.ndarray]]] = {v: [] for v in vehicles}
+    gt: dict[str, list[PoseRecord]] = {v: [] for v in vehicles}
+    present = [v for v in vehicles if v in logs.vehicles]
+    for rec in logs.records(vehicles=present, roles=("imu", "odom", "ground_truth")):
+        if isinstance(rec, ImuSample):
+            imu[rec.vehicle].append((rec.stamp_ns, np.r_[rec.accel_m_s2, rec.gyro_rad_s]))
+        elif isinstance(rec, OdometryRecord):
+            odo[rec.vehicle].append((rec.stamp_ns, odometry_input(rec)))
+        elif isinstance(rec, PoseRecord):
+            gt[rec.vehicle].append(rec)
+    out = {}
+    for v in vehicles:
+
+        def arrays(items: list[tuple[int, np.ndarray]], d: int) -> tuple[np.ndarray, np.ndarray]:
+            st = np.array([s for s, _ in items], dtype=np.int64)
+            u = np.array([a for _, a in items], dtype=float).reshape(-1, d)
+            order = np.argsort(st, kind="stable")
+            return st[order], u[order]
+
+        i_st, i_u = arrays(imu[v], 6)
+        o_st, o_u = arrays(odo[v], 2)
+        g = gt[v]
+        out[v] = _Motion(
+            i_st,
+            i_u,
+            o_st,
+            o_u,
+            PoseTable(
+                np.array([r.stamp_ns for r in g], dtype=np.int64),
+                np.array([r.p_m for r in g], dtype=float).reshape(-1, 3),
+                np.array([r.q_xyzw for r in g], dtype=float).reshape(-1, 4),
+            ),
+        )
+    return out
+
+
+def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> MotionModel:
+    mc = cfg.motion
+    kind = mc.model
+    if kind == "auto":
+        if len(motion.imu_stamps):
+            kind = "ins"
+        elif len(motion.odom_stamps):
+            kind = "odometry"
+        elif mc.fallback_constant_velocity:
+            kind = "constant_velocity"
+        else:
+            raise CvslamError(
+                f"vehicle {vehicle}: no IMU or odometry messages in the logs; set "
+                "fuse.motion.model=constant_velocity (or fuse.motion.fallback_constant_velocity"
+                "=true) to track it with a constant-velocity model"
+            )
+    if kind == "ins":
+        if not len(motion.imu_stamps):
+            raise CvslamError(f"vehicle {vehicle}: fuse.motion.model is ins but no IMU messages")
+        return InsModel(
+            InsNoise(
+                mc.accel_noise_density,
+                mc.gyro_noise_density,
+                mc.accel_random_walk,
+                mc.gyro_random_walk,
+            ),
+            biases=mc.imu_biases,
+        )
+    if kind == "odometry":
+        if not len(motion.odom_stamps):
+            raise CvslamError(
+                f"vehicle {vehicle}: fuse.motion.model is odometry but no odometry messages"
+            )
+        return OdometryModel(
+            mc.odometry_speed_noise_density, mc.odometry_yaw_rate_noise_density, z_nav_m=z_nav_m
+        )
+    return ConstantVelocityModel(mc.cv_accel_noise_density, mc.cv_angular_accel_noise_density)
+
+
+def _initial_pose(
+    cfg: FuseConfig, vehicle: str, gt: PoseTable, first_frame_ns: int, first_motion_ns: int
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(start_ns, p (3,), euler (3,), v_nav (3,), w_body (3,)) from the first ground-truth
+    pose at or after the first frame and motion sample (velocities by finite differences)."""
+    t_min = max(first_frame_ns, first_motion_ns)
+    if cfg.initial.source == "origin":
+        return t_min, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3)
+    if len(gt) == 0:
+        raise CvslamError(
+            f"vehicle {vehicle}: no ground-truth pose in the logs for the initial pose; set "
+            "fuse.initial.source=origin to start at the nav origin"
+        )
+    i = int(np.searchsorted(gt.stamps_ns, t_min))
+    if i >= len(gt):
+        raise CvslamError(f"vehicle {vehicle}: ground truth ends before the first frame")
+    if i > 0 and t_min - gt.stamps_ns[i - 1] < gt.stamps_ns[i] - t_min:
+        i -= 1  # the nearest sample (before the first frame is fine: the filter predicts)
+    R = quat_xyzw_to_matrix(gt.q_xyzw[i])
+    euler = matrix_to_euler_zyx(R)
+    j0, j1 = max(i - 1, 0), min(i + 1, len(gt) - 1)
+    v_nav = np.zeros(3)
+    w_body = np.zeros(3)
+    if j1 > j0:
+        dt = (gt.stamps_ns[j1] - gt.stamps_ns[j0]) * 1e-9
+        v_nav = (gt.p_m[j1] - gt.p_m[j0]) / dt
+        dR = quat_xyzw_to_matrix(gt.q_xyzw[j0]).T @ quat_xyzw_to_matrix(gt.q_xyzw[j1])
+        angle = np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0))
+        axis = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
+        if angle > 1e-12:
+            w_body = axis / (2.0 * np.sin(angle)) * angle / dt
+    return int(gt.stamps_ns[i]), gt.p_m[i].copy(), euler, v_nav, w_body
+
+
+def build_inputs(
+    cfg: Config, features: dict[str, FeatureSet], logs: LogSet
+) -> tuple[list[VehicleInput], dict[str, PoseTable]]:
+    vehicles = list(features)
+    motion = _read_motion(logs, vehicles)
+    init = cfg.fuse.initial
+    unc = InitialUncertainty(
+        init.position_sigma_m,
+        init.attitude_sigma_rad,
+        init.velocity_sigma_m_s,
+        init.angular_rate_sigma_rad_s,
+        init.accel_bias_sigma_m_s2,
+        init.gyro_bias_sigma_rad_s,
+    )
+    inputs = []
+    for v in vehicles:
+        fs = features[v]
+        mo = motion[v]
+        if fs.n_frames == 0:
+            raise CvslamError(f"vehicle {v}: the feature file has no frames")
+        gt = mo.gt
+        z0 = float(gt.p_m[0, 2]) if len(gt) else 0.0
+        model = _model(cfg.fuse, v, mo, z0)
+        if model.kind == "ins":
+            st, U = mo.imu_stamps, mo.imu
+        elif model.kind == "odometry":
+            st, U = mo.odom_stamps, mo.odom
+        else:
+            st, U = np.zeros(0, dtype=np.int64), np.zeros((0, 0))
+        first_motion = int(st[0]) if len(st) else int(fs.frame_stamp_ns[0])
+        start, p0, e0, v0, w0 = _initial_pose(
+            cfg.fuse, v, gt, int(fs.frame_stamp_ns[0]), first_motion
+        )
+        x0 = model.initial_state(p0, e0, v0, w0)
+        P0 = model.initial_covariance(unc)
+        inputs.append(
+            VehicleInput(
+                v,
+                model,
+                x0,
+                P0,
+                start,
+                st,
+                U,
+                fs,
+                StereoObservationModel.from_rig(stereo_rig(fs.rig)),
+            )
+        )
+    return inputs, {v: motion[v].gt for v in vehicles}
+
+
+def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
+    h = cfg.hinf
+    a = cfg.association
+    m = cfg.map
+    return SlamSettings(
+        filter=FilterSettings(filter_kind, h.gamma, h.c_w, h.c_v, h.bound, h.gamma_margin),
+        pixel_sigma_px=a.pixel_sigma_px,
+        gate_chi2=float(chi2.ppf(a.gate_probability, 4)),
+        descriptor_ratio=a.descriptor_ratio,
+        max_descriptor_distance=a.max_descriptor_distance,
+        max_landmarks=m.max_landmarks,
+        max_updates_per_frame=m.max_updates_per_frame,
+        target_tracked=m.target_tracked,
+        max_new_per_frame=m.max_new_per_frame,
+        max_new_depth_sigma_ratio=m.max_new_depth_sigma_ratio,
+        loop_closure_gap_ns=int(m.loop_closure_gap_s * 1e9),
+        loop_closure_min_landmarks=m.loop_closure_min_landmarks,
+        nis_window=cfg.divergence.window,
+        nis_per_dof_max=cfg.divergence.nis_per_dof_max,
+    )
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def pose_table(track: VehicleTrack) -> PoseTable:
+    q = np.array([matrix_to_quat_xyzw(euler_zyx_to_matrix(*e)) for e in track.euler_rad])
+    return PoseTable(track.stamps_ns, track.p_nav_m, q.reshape(-1, 4))
+
+
+def truth_at(gt: PoseTable, stamps_ns: np.ndarray) -> np.ndarray:
+    """(F, 3) ground-truth positions interpolated at stamps (NaN outside the truth)."""
+    out = np.full((len(stamps_ns), 3), np.nan)
+    if len(gt) < 2:
+        return out
+    t = gt.stamps_ns.astype(float)
+    inside = (stamps_ns >= gt.stamps_ns[0]) & (stamps_ns <= gt.stamps_ns[-1])
+    for k in range(3):
+        out[inside, k] = np.interp(stamps_ns[inside].astype(float), t, gt.p_m[:, k])
+    return out
+
+
+def _errors(track: VehicleTrack, gt: PoseTable) -> tuple[float, float]:
+    """(final error, RMSE) of positions against ground truth, NaN without truth."""
+    if len(track.stamps_ns) == 0:
+        return float("nan"), float("nan")
+    err = np.linalg.norm(track.p_nav_m - truth_at(gt, track.stamps_ns), axis=1)
+    ok = np.isfinite(err)
+    if not ok.any():
+        return float("nan"), float("nan")
+    return float(err[ok][-1]), float(np.sqrt(np.mean(err[ok] ** 2)))
+
+
+def _map_table(res: SlamResult) -> MapTable:
+    lm = res.landmarks
+    return MapTable(
+        landmark_id=lm.ids,
+        p_nav_m=lm.p_nav_m,
+        std_m=lm.std_m,
+        observers=lm.observers,
+        n_observations=lm.n_observations,
+        first_seen_ns=lm.first_seen_ns,
+        last_seen_ns=lm.last_seen_ns,
+        in_state=lm.in_state,
+    )
+
+
+EVENT_COLUMNS = [
+    "stamp_ns",
+    "event",
+    "vehicle",
+    "other_vehicles",
+    "landmarks",
+    "max_absence_s",
+    "detail",
+]
+
+
+def _write_outputs(
+    tmp: Path,
+    res: SlamResult,
+    dr: dict[str, VehicleTrack],
+    header: str,
+    meta: dict[str, str],
+) -> None:
+    tables = {v: pose_table(t) for v, t in res.tracks.items()}
+    dr_tables = {v: pose_table(t) for v, t in dr.items()}
+    for v, t in res.tracks.items():
+        write_tum(tmp / f"{v}.tum", tables[v], header=f"{header}\nvehicle {v}: filter estimate")
+        write_tum(
+            tmp / f"{v}_deadreckoning.tum",
+            dr_tables[v],
+            header=f"{header}\nvehicle {v}: dead reckoning (same motion input, no correction)",
+        )
+        save_pose_covariances(tmp / f"{v}_pose_cov.npz", t.stamps_ns, t.pose_cov)
+    table = _map_table(res)
+    write_map_csv(tmp / "map.csv", table)
+    write_map_ply(tmp / "map.ply", table)
+    write_csv_atomic(tmp / "timeline.csv", pd.DataFrame(res.timeline))
+    write_csv_atomic(tmp / "events.csv", pd.DataFrame(res.events, columns=EVENT_COLUMNS))
+    write_result_mcap(tmp / "result.mcap", tables, table, deadreckoning=dr_tables, metadata=meta)
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def run(
+    cfg: Config,
+    run_dir: Path,
+    *,
+    filter_kind: str | None = None,
+    single: bool = False,
+    log_paths: Sequence[Path] = (),
+    force: bool = False,
+    progress: bool = False,
+) -> FuseSummary:
+    kind = filter_kind or cfg.fuse.filter
+    name = output_name(kind, single)
+    out_dir = run_dir / name
+    files = _feature_files(run_dir)
+    loaded = [load_features(p) for p in files]
+    features = {fs.vehicle: fs for fs, _ in loaded}
+    logs_used = list(log_paths) or find_logs(run_dir, [m for _, m in loaded])
+    rd = RunDir(run_dir)
+    outputs = [out_dir / "timeline.csv", out_dir / "map.csv", out_dir / "result.mcap"]
+    outputs += [out_dir / f"{v}.tum" for v in features]
+    plan = rd.plan(name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)
+    if plan.action == "skip":
+        log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out_dir)
+        return FuseSummary(out_dir, True, kind, single, {}, 0, 0.0, 0.0, 0)
+    logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
+    inputs, truth = build_inputs(cfg, features, logs)
+    settings = slam_settings(cfg.fuse, kind)
+    n_frames = sum(int(np.sum(v.features.frame_stamp_ns >= v.start_ns)) for v in inputs)
+    t0 = time.perf_counter()
+    bar = tqdm(
+        total=n_frames, desc=f"fuse ({kind})", unit="frame", disable=None if progress else True,
+        leave=False,
+    )  # fmt: skip
+    # one BLAS thread: the filter's matrices (hundreds of rows) are too small to gain from
+    # threads, and OpenBLAS's thread hand-offs made every update ~3x slower on 2 cores
+    with bar, threadpool_limits(limits=1, user_api="blas"):
+        if single:
+            res = merge_results([Slam([v], settings, progress=bar.update).run() for v in inputs])
+        else:
+            res = Slam(inputs, settings, progress=bar.update).run()
+    wall = time.perf_counter() - t0
+    dr = {v.name: dead_reckoning_track(v) for v in inputs}
+    if res.divergence is not None:
+        d = res.divergence
+        t_rel = (d.stamp_ns - min(v.start_ns for v in inputs)) * 1e-9
+        diag = run_dir / f"{name}_diverged_timeline.csv"
+        write_csv_atomic(diag, pd.DataFrame(res.timeline))
+        raise CvslamError(
+            f"{run_dir}: the {kind} filter diverged for {d.vehicle} at stamp {d.stamp_ns} ns "
+            f"({t_rel:.2f} s into the run): {d.reason}; no outputs written (timeline so far: "
+            f"{diag})"
+        )
+    span_s = max((v.features.frame_stamp_ns[-1] - v.start_ns) * 1e-9 for v in inputs)
+    header = f"cvslam {__version__} fuse ({kind}), nav frame NED, body FRD; run {run_dir.resolve()}"
+    meta = {
+        "filter": kind,
+        "mode": "single" if single else "cooperative",
+        "cvslam_version": __version__,
+        "run_dir": str(run_dir.resolve()),
+    }
+    tmp = run_dir / f"{name}.partial"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    _write_outputs(tmp, res, dr, header, meta)
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
+    vehicles = {}
+    for v in inputs:
+        tr, dtr = res.tracks[v.name], dr[v.name]
+        fe, rmse = _errors(tr, truth[v.name])
+        fe_dr, rmse_dr = _errors(dtr, truth[v.name])
+        steps = np.diff(tr.p_nav_m, axis=0)
+        loops = sum(
+            1 for e in res.events if e["event"] == "loop_closure" and e["vehicle"] == v.name
+        )
+        vehicles[v.name] = VehicleFuse(
+            frames=len(tr.stamps_ns),
+            model=v.model.kind,
+            distance_m=float(np.sum(np.linalg.norm(steps, axis=1))),
+            final_error_m=fe,
+            final_error_deadreckoning_m=fe_dr,
+            rmse_m=rmse,
+            rmse_deadreckoning_m=rmse_dr,
+            final_sigma_m=float(np.sqrt(np.trace(tr.pose_cov[-1][:3, :3])))
+            if len(tr.stamps_ns)
+            else float("nan"),
+            loop_closures=loops,
+        )
+    summary = FuseSummary(
+        out_dir,
+        False,
+        kind,
+        single,
+        vehicles,
+        len(res.landmarks.ids),
+        wall,
+        span_s / wall if wall > 0 else float("inf"),
+        res.gamma_raised,
+    )
+    rd.record(
+        name,
+        plan,
+        outputs,
+        {
+            "filter": kind,
+            "mode": "single" if single else "cooperative",
+            "vehicles": {k: _plain(vars(x)) for k, x in vehicles.items()},
+            "landmarks": summary.landmarks,
+            "realtime_factor": round(float(summary.realtime_factor), 2),
+            "gamma_raised": res.gamma_raised,
+            "initial_pose": cfg.fuse.initial.source,
+        },
+        wall,
+    )
+    return summary
+
+
+def _plain(d: dict[str, Any]) -> dict[str, Any]:
+    return {
+        k: (round(float(v), 6) if isinstance(v, (float, np.floating)) else v) for k, v in d.items()
+    }

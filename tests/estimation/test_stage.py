@@ -1,0 +1,178 @@
+"""`cvslam fuse` end to end on a small simulated run (landmark mode): outputs, accuracy
+against dead reckoning, covariance health, outlier rejection, bad input."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from threadpoolctl import threadpool_limits
+
+from cvslam_cli.config import load_config
+from cvslam_cli.estimation import stage
+from cvslam_cli.estimation.slam import Slam, dead_reckoning_track
+from cvslam_cli.io.features_file import load_features
+from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
+from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.trajectory import read_tum
+from tests.sim.test_stage import small_uav_scenario
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+
+# a consumer-grade IMU (10x the simulator's default noise) so that dead reckoning drifts
+# visibly within the test's 12 s, and the filter told the same densities
+SENSORS = {
+    "camera": {"mount": "down", "width": 752, "height": 480, "fx": 450.0, "fy": 450.0,
+               "cx": 375.5, "cy": 239.5, "baseline_m": 1.5, "rate_hz": 10.0},
+    "imu": {"accel_noise_density": 0.02, "gyro_noise_density": 1.7e-3},
+}  # fmt: skip
+NOISE = ("--set", "fuse.motion.accel_noise_density=0.02",
+         "--set", "fuse.motion.gyro_noise_density=0.0017")  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 12 s two-UAV landmark-mode simulation (features + logs), made once."""
+    from cvslam_cli.cli import main
+
+    tmp = tmp_path_factory.mktemp("fuse")
+    sc = small_uav_scenario(
+        tmp,
+        duration_s=12.0,
+        mode="landmarks",
+        **{f"vehicles.{v}.{k}": val for v in ("uav1", "uav2") for k, val in SENSORS.items()},
+    )
+    out = tmp / "sim"
+    with pytest.raises(SystemExit) as exc:
+        main(["-q", "simulate", str(sc), "-o", str(out)])
+    assert exc.value.code in (0, None)
+    return out
+
+
+def _copy(sim_run: Path, tmp_path: Path) -> Path:
+    run = tmp_path / "run"
+    shutil.copytree(sim_run, run)
+    return run
+
+
+def _inputs(run: Path, *overrides: str):
+    cfg = load_config((), [*NOISE[1::2], *overrides])
+    feats = {v: load_features(run / "features" / f"{v}.npz")[0] for v in ("uav1", "uav2")}
+    logs = LogSet([McapLogSource(run / f"{v}.mcap") for v in ("uav1", "uav2")], cfg.logs)
+    inputs, truth = stage.build_inputs(cfg, feats, logs)
+    return cfg, inputs, truth
+
+
+def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cvslam):
+    run = _copy(sim_run, tmp_path)
+    r = cvslam("fuse", run, *NOISE)
+    assert r.code == 0, r.err
+    out = run / "fuse"
+    names = {p.name for p in out.iterdir()}
+    for v in ("uav1", "uav2"):
+        assert {f"{v}.tum", f"{v}_deadreckoning.tum", f"{v}_pose_cov.npz"} <= names
+    assert {"map.csv", "map.ply", "timeline.csv", "events.csv", "result.mcap"} <= names
+    assert not (run / "fuse.partial").exists()
+    summary = yaml.safe_load((run / "run.yaml").read_text())["stages"]["fuse"]["summary"]
+    for v in ("uav1", "uav2"):
+        s = summary["vehicles"][v]
+        assert s["model"] == "ins"
+        # vision keeps the error small where the IMU alone drifts away
+        assert s["final_error_m"] < 0.25 * s["final_error_deadreckoning_m"], s
+        truth = read_tum(run / "truth" / f"{v}.tum")
+        est = read_tum(out / f"{v}.tum")
+        stamps, cov = load_pose_covariances(out / f"{v}_pose_cov.npz")
+        np.testing.assert_array_equal(stamps, est.stamps_ns)
+        assert np.all(np.isin(est.stamps_ns, truth.stamps_ns))
+        # covariances stay symmetric positive definite over the run
+        assert np.allclose(cov, np.swapaxes(cov, 1, 2))
+        assert np.all(np.linalg.eigvalsh(cov)[:, 0] > 0)
+    tl = pd.read_csv(out / "timeline.csv")
+    assert set(tl.vehicle) == {"uav1", "uav2"}
+    assert tl.stamp_ns.is_monotonic_increasing
+    assert (tl.type1 > 0).mean() > 0.9 and tl.type3.sum() > 0
+    assert (tl.landmarks_in_state <= 200).all()
+    mp = read_map_csv(out / "map.csv")
+    assert len(mp) == tl.landmarks_mapped.iloc[-1]
+    assert mp.in_state.sum() == tl.landmarks_in_state.iloc[-1]
+    # the same inputs and config: the stage is skipped
+    before = (out / "uav1.tum").stat().st_mtime_ns
+    assert cvslam("fuse", run, *NOISE).code == 0
+    assert (out / "uav1.tum").stat().st_mtime_ns == before
+    # another config is refused without --force
+    r = cvslam("fuse", run, *NOISE, "--set", "fuse.map.max_landmarks=100")
+    assert r.code == 1 and "different config" in r.err
+
+
+def test_single_and_ekf_runs_go_to_their_own_folders(sim_run, tmp_path, cvslam):
+    run = _copy(sim_run, tmp_path)
+    r = cvslam("fuse", run, "--single", "--filter", "ekf", *NOISE)
+    assert r.code == 0, r.err
+    out = run / "fuse_ekf_single"
+    assert (out / "uav1.tum").exists() and (out / "uav2.tum").exists()
+    mp = read_map_csv(out / "map.csv")
+    # each vehicle alone: no landmark observed by both
+    assert not any(";" in o for o in mp.observers)
+    events = pd.read_csv(out / "events.csv")
+    assert "cross_vehicle" not in set(events.event)
+
+
+def test_wrong_matches_never_become_landmarks_and_associations_are_right(sim_run):
+    """The simulator injects 3 % wrong stereo matches (true id -2): the candidate
+    confirmation keeps them out of the map; the filter stays consistent in NIS."""
+    cfg, inputs, truth = _inputs(sim_run)
+    with threadpool_limits(limits=1, user_api="blas"):
+        res = Slam(inputs[:1], stage.slam_settings(cfg.fuse, "ekf")).run()
+    assert res.divergence is None
+    assert np.sum(res.landmarks.true_id == -2) == 0
+    assert np.sum(res.landmarks.true_id >= 0) == len(res.landmarks.ids)
+    tl = pd.DataFrame(res.timeline)
+    upd = tl[tl.nis_dof > 0]
+    assert 0.5 < (upd.nis / upd.nis_dof).mean() < 2.0
+    # dead reckoning from the same start drifts far more than the filter
+    tr, dr = res.tracks["uav1"], dead_reckoning_track(inputs[0])
+    np.testing.assert_array_equal(tr.stamps_ns, dr.stamps_ns)
+    gt = stage.truth_at(truth["uav1"], tr.stamps_ns)
+    e = np.linalg.norm(tr.p_nav_m - gt, axis=1)
+    e_dr = np.linalg.norm(dr.p_nav_m - gt, axis=1)
+    assert e[-1] < 0.25 * e_dr[-1]
+
+
+def test_a_diverging_filter_is_reported_with_its_time(sim_run, tmp_path, cvslam):
+    run = _copy(sim_run, tmp_path)
+    # claim 100x more precise pixels than the simulator's: NIS explodes
+    r = cvslam("fuse", run, "--set", "fuse.association.pixel_sigma_px=0.005",
+               "--set", "fuse.association.gate_probability=0.999999999")  # fmt: skip
+    assert r.code == 1
+    assert "diverged" in r.err and "s into the run" in r.err and "NIS" in r.err
+    assert len(r.err.strip().splitlines()) == 1
+    assert not (run / "fuse").exists() and not (run / "fuse.partial").exists()
+
+
+def test_bad_inputs_give_one_line_errors(sim_run, tmp_path, cvslam):
+    run = _copy(sim_run, tmp_path)
+    # no motion data and no constant-velocity fallback
+    r = cvslam("fuse", run, "--set", "logs.vehicle_defaults.topics.imu=/nothing")
+    assert r.code == 1 and "no IMU or odometry" in r.err and "constant_velocity" in r.err
+    # ... with the fallback configured it runs
+    r = cvslam("fuse", run, "--force", "--set", "logs.vehicle_defaults.topics.imu=/nothing",
+               "--set", "fuse.motion.fallback_constant_velocity=true",
+               "--set", "fuse.divergence.nis_per_dof_max=1000")  # fmt: skip
+    assert r.code == 0, r.err
+    # a feature file of another format version
+    f = run / "features" / "uav1.npz"
+    with np.load(f) as npz:
+        data = {k: npz[k] for k in npz.files}
+    data["version"] = np.array(99)
+    np.savez(f, **data)
+    r = cvslam("fuse", run, "--force")
+    assert r.code == 1 and "version 99" in r.err and "uav1.npz" in r.err
+    # no features at all
+    r = cvslam("fuse", tmp_path / "empty")
+    assert r.code == 1 and "no feature files" in r.err
