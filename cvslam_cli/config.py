@@ -223,11 +223,12 @@ class MapConfig:
     max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)
     loop_closure_gap_s: float = opt(20.0, lo=0.0, lo_open=True)
     loop_closure_min_landmarks: int = opt(3, lo=1)
+    event_merge_s: float = opt(5.0, lo=0.0)
 
 
 @dataclass(frozen=True)
 class DivergenceConfig:
-    """A vehicle's filter has diverged when its mean NIS per measurement over the last
+    """A vehicle's filter has diverged when its median NIS per measurement over the last
     `window` updated frames exceeds `nis_per_dof_max` (1 is nominal)."""
 
     window: int = opt(20, lo=1)

@@ -166,3 +166,44 @@ def spread_order(uv_px: F64, priority: F64, size_px: tuple[int, int], grid: int 
     starts = np.flatnonzero(np.r_[True, b_sorted[1:] != b_sorted[:-1]])
     rank = np.arange(n) - np.repeat(starts, np.diff(np.r_[starts, n]))
     return order[np.lexsort((priority[order], rank))]
+
+
+def pose_consistent(
+    pred: LandmarkPrediction,
+    rows: I64,
+    z_obs: F64,
+    P_vv: F64,
+    P_mm: F64,
+    R: F64,
+    gate_chi2: float,
+    iterations: int = 3,
+) -> NDArray[np.bool_]:
+    """Which associations (prediction rows `rows`, observations z_obs (a, 4)) agree with one
+    common vehicle correction. Individually gated innovations can still be wrong matches:
+    the windows are wide while the pose is uncertain, and a repetitive texture offers a
+    look-alike inside them. The innovations of right matches are explained by one small
+    correction dx of the vehicle state, nu_j = H_v,j dx + (landmark and pixel noise with
+    covariance W_j^-1 = H_m,j P_mm,j H_m,j^T + R); dx is the weighted least-squares solution
+    with the prior P_vv, and a match whose residual nu_j - H_v,j dx fails the chi-square gate
+    is dropped, re-solving without it (`iterations` times). P_mm (a, 3, 3)."""
+    a = len(rows)
+    keep = np.ones(a, dtype=bool)
+    if a == 0:
+        return keep
+    H_v = pred.H_v[rows]
+    H_m = pred.H_m[rows]
+    nu = z_obs - pred.z[rows]
+    W = np.linalg.inv(H_m @ P_mm @ np.swapaxes(H_m, 1, 2) + R)  # (a, 4, 4)
+    HtW = np.swapaxes(H_v, 1, 2) @ W  # (a, n_v, 4)
+    info_prior = np.linalg.inv(P_vv)
+    for _ in range(iterations):
+        A = info_prior + np.einsum("aij,ajk->ik", HtW[keep], H_v[keep])
+        b = np.einsum("aij,aj->i", HtW[keep], nu[keep])
+        dx = np.linalg.solve(A, b)
+        r = nu - H_v @ dx
+        d2 = np.einsum("ai,aij,aj->a", r, W, r)
+        new_keep = d2 < gate_chi2
+        if np.array_equal(new_keep, keep) or not new_keep.any():
+            break
+        keep = new_keep
+    return keep

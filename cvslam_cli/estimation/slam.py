@@ -23,7 +23,8 @@ ground station would. For a frame of vehicle v at time t:
    re-observation after more than `loop_closure_gap_s`; type 2; divergence).
 
 Divergence: the normalised innovation squared per measurement (NIS / dof, 1 on average for a
-consistent filter) averaged over the vehicle's last `window` updates; above
+consistent filter), its median over the vehicle's last `window` updates (robust to a single
+bad frame); above
 `nis_per_dof_max`, or any non-finite number in its state, the run stops and says when. The
 chi-square gate keeps gross innovations out of the NIS, so a frame where landmarks are
 predicted in view but none matches inside its window (the filter has lost its map) counts as
@@ -35,7 +36,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -46,6 +47,7 @@ from cvslam_cli.estimation.association import (
     associate,
     camera_depths,
     in_view,
+    pose_consistent,
     predict_landmarks,
     spread_order,
 )
@@ -81,6 +83,7 @@ class SlamSettings:
     filter: FilterSettings = field(default_factory=FilterSettings)
     pixel_sigma_px: float = 0.5
     gate_chi2: float = 18.47  # chi2 with 4 dof at 0.999
+    consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
     descriptor_ratio: float = 0.8
     max_descriptor_distance: float = 350.0
     max_landmarks: int = 200
@@ -90,6 +93,7 @@ class SlamSettings:
     max_new_depth_sigma_ratio: float = 0.25
     loop_closure_gap_ns: int = 20_000_000_000
     loop_closure_min_landmarks: int = 3
+    event_merge_ns: int = 5_000_000_000
     nis_window: int = 20
     nis_per_dof_max: float = 10.0
 
@@ -199,6 +203,7 @@ class Slam:
             r.nis_recent = deque(maxlen=settings.nis_window)
         self.timeline: list[dict[str, Any]] = []
         self.events: list[dict[str, Any]] = []
+        self._open_events: dict[tuple[str, str, str], dict[str, Any]] = {}
         self.divergence: Divergence | None = None
         self.gamma_raised = 0
         self.progress = progress
@@ -266,7 +271,7 @@ class Slam:
                 z_pred, _, _ = vin.obs.predict(p, euler, m_all[front])
                 size = fs.rig.size_px
                 visible = front[in_view(z_pred, depth[front], size, margin_px=0.0)]
-        n_type1 = n_type2 = n_type3 = n_loop = 0
+        n_type1 = n_type2 = n_type3 = n_loop = n_rejected = 0
         nis = float("nan")
         dof = 0
         gamma_used = float("nan")
@@ -294,6 +299,19 @@ class Slam:
                 s.max_descriptor_distance,
             )
             near = assoc.near_landmark
+            ok = pose_consistent(
+                pred,
+                assoc.pred_index,
+                z_obs[assoc.match_index],
+                P_vv,
+                P_mm[assoc.pred_index],
+                s.filter.r_scale * R4,
+                s.consistency_chi2,
+            )
+            n_rejected = int(np.sum(~ok))
+            assoc = replace(
+                assoc, pred_index=assoc.pred_index[ok], match_index=assoc.match_index[ok]
+            )
             if len(assoc.pred_index):
                 ids = ids_vis[assoc.pred_index]
                 last_v = book.last_seen_ns[ids, run.index]
@@ -369,17 +387,17 @@ class Slam:
             # innovations are beyond the gate, i.e. larger than any NIS recorded
             run.nis_recent.append(np.inf)
         if dof or np.isinf(run.nis_recent[-1] if run.nis_recent else 0.0):
-            mean_nis = float(np.mean(run.nis_recent))
-            if len(run.nis_recent) == run.nis_recent.maxlen and mean_nis > s.nis_per_dof_max:
+            median_nis = float(np.median(run.nis_recent))
+            if len(run.nis_recent) == run.nis_recent.maxlen and median_nis > s.nis_per_dof_max:
                 self._diverge(
                     vin.name,
                     t_ns,
-                    f"mean NIS per measurement {mean_nis:.1f} over the last "
+                    f"median NIS per measurement {median_nis:.1f} over the last "
                     f"{len(run.nis_recent)} updates (1 expected, limit {s.nis_per_dof_max:g})"
                     + (
                         "; frames where no landmark predicted in view matched inside its "
                         "window count as infinite NIS"
-                        if np.isinf(mean_nis)
+                        if np.isinf(median_nis)
                         else ""
                     ),
                 )
@@ -393,6 +411,7 @@ class Slam:
                 "landmarks_mapped": book.count,
                 "matches": len(z_obs),
                 "visible": len(visible),
+                "rejected": n_rejected,
                 "type1": n_type1,
                 "type2": n_type2,
                 "type3": n_type3,
@@ -536,34 +555,45 @@ class Slam:
         return ";".join(n for i, n in enumerate(self.names) if bits >> i & 1)
 
     def _event(
-        self, t_ns: int, kind: str, vehicle: str, others: str, count: int, absent_ns: I64
+        self,
+        t_ns: int,
+        kind: str,
+        vehicle: str,
+        others: str,
+        count: int,
+        absent_ns: I64,
+        detail: str = "",
     ) -> None:
-        self.events.append(
-            {
-                "stamp_ns": t_ns,
-                "event": kind,
-                "vehicle": vehicle,
-                "other_vehicles": others,
-                "landmarks": count,
-                "max_absence_s": float(np.max(absent_ns)) * 1e-9 if len(absent_ns) else 0.0,
-                "detail": "",
-            }
-        )
+        """Log an event; frames of the same vehicle with the same kind of event (and the same
+        other vehicles) less than `event_merge_ns` apart are one event: one loop closure or
+        one encounter, counted over its frames."""
+        absence = float(np.max(absent_ns)) * 1e-9 if len(absent_ns) else 0.0
+        key = (kind, vehicle, others)
+        last = self._open_events.get(key)
+        if last is not None and t_ns - last["end_stamp_ns"] <= self.settings.event_merge_ns:
+            last["end_stamp_ns"] = t_ns
+            last["frames"] += 1
+            last["landmarks"] += count
+            last["max_absence_s"] = max(last["max_absence_s"], absence)
+            return
+        row = {
+            "stamp_ns": t_ns,
+            "end_stamp_ns": t_ns,
+            "event": kind,
+            "vehicle": vehicle,
+            "other_vehicles": others,
+            "frames": 1,
+            "landmarks": count,
+            "max_absence_s": absence,
+            "detail": detail,
+        }
+        self.events.append(row)
+        self._open_events[key] = row
 
     def _diverge(self, vehicle: str, t_ns: int, reason: str) -> None:
         if self.divergence is None:
             self.divergence = Divergence(vehicle, t_ns, reason)
-            self.events.append(
-                {
-                    "stamp_ns": t_ns,
-                    "event": "divergence",
-                    "vehicle": vehicle,
-                    "other_vehicles": "",
-                    "landmarks": 0,
-                    "max_absence_s": 0.0,
-                    "detail": reason,
-                }
-            )
+            self._event(t_ns, "divergence", vehicle, "", 0, np.zeros(0, dtype=np.int64), reason)
 
     # ------------------------------------------------------------------ result
     def _result(self) -> SlamResult:

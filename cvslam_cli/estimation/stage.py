@@ -332,6 +332,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         max_new_depth_sigma_ratio=m.max_new_depth_sigma_ratio,
         loop_closure_gap_ns=int(m.loop_closure_gap_s * 1e9),
         loop_closure_min_landmarks=m.loop_closure_min_landmarks,
+        event_merge_ns=int(m.event_merge_s * 1e9),
         nis_window=cfg.divergence.window,
         nis_per_dof_max=cfg.divergence.nis_per_dof_max,
     )
@@ -384,9 +385,11 @@ def _map_table(res: SlamResult) -> MapTable:
 
 EVENT_COLUMNS = [
     "stamp_ns",
+    "end_stamp_ns",
     "event",
     "vehicle",
     "other_vehicles",
+    "frames",
     "landmarks",
     "max_absence_s",
     "detail",
