@@ -11,6 +11,11 @@ echo "== cvslam demo: simulate the two-UAV mission (configs/scenarios/uav2_paper
 echo
 echo "== cvslam demo: adaptive SIFT + stereo-constrained matching on every frame"
 "$cvslam" extract "$out/sim/uav1.mcap" "$out/sim/uav2.mcap" -o "$out/run" --force
+echo
+echo "== cvslam demo: the filter, cooperative NH-infinity, then each UAV alone and the EKF"
+"$cvslam" fuse "$out/run" --force
+"$cvslam" fuse "$out/run" --single --force
+"$cvslam" fuse "$out/run" --filter ekf --force
 
 if [ -d "$data/euroc_v101_micro/mav0" ]; then
   echo
@@ -22,6 +27,6 @@ else
 fi
 echo
 echo "Logs and ground truth are in $out/sim (open the .mcap files in Foxglove or read them"
-echo "with rosbags); features in $out/run/features. Still to land: fuse (cooperative"
-echo "NH-infinity, single and EKF for comparison) -> mosaic -> eval, the headline table and"
-echo "eval/report.html."
+echo "with rosbags); features in $out/run/features; trajectories, map, timeline and"
+echo "result.mcap in $out/run/fuse (cooperative), fuse_single, fuse_ekf. Still to land:"
+echo "mosaic -> eval, the headline table and eval/report.html."
