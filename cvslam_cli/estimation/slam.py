@@ -36,7 +36,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -166,6 +166,25 @@ def motion_segments(stamps_ns: I64, inputs: F64, t0_ns: int, t1_ns: int) -> tupl
 MIN_VISIBLE_FOR_LOST = 10
 
 
+@dataclass
+class _FrameCounts:
+    """What one frame did (the timeline row's counts). near, used: (M,) matches inside some
+    landmark's window / used in the update."""
+
+    near: NDArray[np.bool_]
+    used: NDArray[np.bool_]
+    updated_slots: I64 = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    type1: int = 0
+    type2: int = 0
+    type3: int = 0
+    loop: int = 0
+    rejected: int = 0
+    nis: float = float("nan")
+    dof: int = 0
+    gamma: float = float("nan")
+    gamma_raised: bool = False
+
+
 class _VehicleRun:
     """Per-vehicle bookkeeping during a run."""
 
@@ -240,12 +259,24 @@ class Slam:
             self.state.predict(vin.name, x_new, F, self.settings.filter.q_scale * Q)
         run.t_ns = t_ns
 
+    def _visible(self, vin: VehicleInput, p: F64, euler: F64) -> I64:
+        """Slots of the landmarks in the state predicted in front of the cameras and inside
+        both images."""
+        m_all = self.state.landmarks()
+        if not len(m_all):
+            return np.zeros(0, dtype=np.int64)
+        depth = camera_depths(vin.obs, p, euler, m_all)
+        front = np.flatnonzero(depth > 0)
+        if not len(front):
+            return front
+        z_pred, _, _ = vin.obs.predict(p, euler, m_all[front])
+        return front[in_view(z_pred, depth[front], vin.features.rig.size_px)]
+
     def _frame(self, run: _VehicleRun, t_ns: int, f: int) -> None:
         t_start = time.perf_counter()
         s = self.settings
         vin = run.vin
         st = self.state
-        book = self.book
         self._predict(run, t_ns)
 
         fs = vin.features
@@ -253,108 +284,19 @@ class Slam:
         ml, mr = fs.match_left[sl], fs.match_right[sl]
         z_obs = np.concatenate([fs.left_uv_px[ml], fs.right_uv_px[mr]], axis=1).astype(float)
         desc_obs = fs.left_desc[ml]
-        vb = st.vehicles[vin.name]
-        v_idx = vb.index
+        v_idx = st.vehicles[vin.name].index
         x_v = st.x[v_idx]
         p, euler = vin.model.pose(x_v)
-        J = vin.model.pose_jacobian(x_v)
         R4 = np.eye(4) * s.pixel_sigma_px**2
 
-        # --- predict landmarks and associate
-        L = st.n_landmarks
-        m_all = st.landmarks()
-        visible = np.zeros(0, dtype=np.int64)
-        if L:
-            depth = camera_depths(vin.obs, p, euler, m_all)
-            front = np.flatnonzero(depth > 0)
-            if len(front):
-                z_pred, _, _ = vin.obs.predict(p, euler, m_all[front])
-                size = fs.rig.size_px
-                visible = front[in_view(z_pred, depth[front], size, margin_px=0.0)]
-        n_type1 = n_type2 = n_type3 = n_loop = n_rejected = 0
-        nis = float("nan")
-        dof = 0
-        gamma_used = float("nan")
-        raised = False
-        updated_slots = np.zeros(0, dtype=np.int64)
-        near = np.zeros(len(z_obs), dtype=bool)
-        used = np.zeros(len(z_obs), dtype=bool)
+        # --- predict the landmarks in view, associate, update
+        visible = self._visible(vin, p, euler)
+        c = _FrameCounts(
+            near=np.zeros(len(z_obs), dtype=bool), used=np.zeros(len(z_obs), dtype=bool)
+        )
         if len(visible) and len(z_obs):
-            lm_idx = st.landmark_index(visible)  # (k, 3)
-            P_vv = st.P[np.ix_(v_idx, v_idx)]
-            P_vm = st.P[v_idx[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2)
-            P_mm = st.P[lm_idx[:, :, None], lm_idx[:, None, :]]
-            pred = predict_landmarks(
-                vin.obs, p, euler, J, visible, m_all[visible], P_vv, P_vm, P_mm,
-                s.filter.r_scale * R4,
-            )  # fmt: skip
-            ids_vis = book.slot_ids[visible]
-            assoc = associate(
-                pred,
-                book.desc[ids_vis],
-                z_obs,
-                desc_obs,
-                s.gate_chi2,
-                s.descriptor_ratio,
-                s.max_descriptor_distance,
-            )
-            near = assoc.near_landmark
-            ok = pose_consistent(
-                pred,
-                assoc.pred_index,
-                z_obs[assoc.match_index],
-                P_vv,
-                P_mm[assoc.pred_index],
-                s.filter.r_scale * R4,
-                s.consistency_chi2,
-            )
-            n_rejected = int(np.sum(~ok))
-            assoc = replace(
-                assoc, pred_index=assoc.pred_index[ok], match_index=assoc.match_index[ok]
-            )
-            if len(assoc.pred_index):
-                ids = ids_vis[assoc.pred_index]
-                last_v = book.last_seen_ns[ids, run.index]
-                seen_before = last_v != NEVER
-                absent_ns = np.where(seen_before, t_ns - last_v, 0)
-                order = spread_order(
-                    z_obs[assoc.match_index, :2],
-                    -absent_ns.astype(float),
-                    tuple(fs.rig.size_px[0]),
-                )[: s.max_updates_per_frame]
-                a_pred = assoc.pred_index[order]
-                a_match = assoc.match_index[order]
-                ids = ids[order]
-                seen_before = seen_before[order]
-                absent_ns = absent_ns[order]
-                k = len(order)
-                y = z_obs[a_match].reshape(-1)
-                h = pred.z[a_pred].reshape(-1)
-                nv = len(v_idx)
-                H_lm = np.zeros((k, 4, k, 3))  # landmark j's rows touch only its columns
-                H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[a_pred]
-                H = np.concatenate(
-                    [pred.H_v[a_pred].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1
-                )
-                cols = np.concatenate([v_idx, lm_idx[a_pred].reshape(-1)])
-                res = st.update(s.filter, y, h, H, cols, np.kron(np.eye(k), R4))
-                nis, dof = res.nis, 4 * k
-                gamma_used, raised = res.gamma, res.gamma_raised
-                self.gamma_raised += int(raised)
-                updated_slots = visible[a_pred]
-                used[a_match] = True
-                n_type2 = int(np.sum(~seen_before))
-                n_type1 = k - n_type2
-                loops = seen_before & (absent_ns > s.loop_closure_gap_ns)
-                n_loop = int(loops.sum())
-                book.observe(ids, run.index, t_ns)
-                if n_loop >= s.loop_closure_min_landmarks:
-                    self._event(t_ns, "loop_closure", vin.name, "", n_loop, absent_ns[loops])
-                if n_type2:
-                    others = self._other_observers(ids[~seen_before], run.index)
-                    self._event(
-                        t_ns, "cross_vehicle", vin.name, others, n_type2, absent_ns[~seen_before]
-                    )
+            self._associate_and_update(run, t_ns, visible, z_obs, desc_obs, R4, c)
+        updated_slots = c.updated_slots
 
         # landmark uncertainty of this frame's updated landmarks (before any eviction)
         lm_std = float("nan")
@@ -364,10 +306,10 @@ class Slam:
 
         # --- new landmarks (type 3), confirmed by the previous frame's candidates
         want = min(s.max_new_per_frame, max(0, s.target_tracked - len(updated_slots)))
-        free = ~near & ~used
+        free = ~c.near & ~c.used
         confirmed = self._confirm_candidates(run, sl, z_obs, desc_obs, free, R4)
         if want and len(confirmed):
-            n_type3 = self._add_landmarks(run, t_ns, sl, confirmed, updated_slots, want)
+            c.type3 = self._add_landmarks(run, t_ns, sl, confirmed, updated_slots, want)
         self._new_candidates(run, sl, free)
 
         # --- record
@@ -380,13 +322,49 @@ class Slam:
         run.stamps.append(t_ns)
         run.x.append(x_v.copy())
         run.pose_cov.append(pose_cov)
-        if dof:
-            run.nis_recent.append(nis / dof)
-        elif len(visible) >= MIN_VISIBLE_FOR_LOST and len(z_obs):
+        self._check_divergence(run, t_ns, c, len(visible), len(z_obs))
+        self.timeline.append(
+            {
+                "stamp_ns": t_ns,
+                "vehicle": vin.name,
+                "frame": f,
+                "state_size": st.n,
+                "landmarks_in_state": st.n_landmarks,
+                "landmarks_mapped": self.book.count,
+                "matches": len(z_obs),
+                "visible": len(visible),
+                "rejected": c.rejected,
+                "type1": c.type1,
+                "type2": c.type2,
+                "type3": c.type3,
+                "loop_closure": c.loop,
+                "sigma_pos_m": float(np.sqrt(np.trace(pose_cov[:3, :3]))),
+                "sigma_att_rad": float(np.sqrt(np.trace(pose_cov[3:, 3:]))),
+                "sigma_landmark_m": lm_std,
+                "nis": c.nis,
+                "nis_dof": c.dof,
+                "gamma": c.gamma,
+                "gamma_raised": c.gamma_raised,
+                "x_m": float(p[0]),
+                "y_m": float(p[1]),
+                "z_m": float(p[2]),
+                "ms": 1e3 * (time.perf_counter() - t_start),
+            }
+        )
+
+    def _check_divergence(
+        self, run: _VehicleRun, t_ns: int, c: _FrameCounts, n_visible: int, n_obs: int
+    ) -> None:
+        """Median NIS per measurement over the vehicle's last updates (module docstring)."""
+        s = self.settings
+        vin = run.vin
+        if c.dof:
+            run.nis_recent.append(c.nis / c.dof)
+        elif n_visible >= MIN_VISIBLE_FOR_LOST and n_obs:
             # landmarks in view, observations there, none inside its window: the
             # innovations are beyond the gate, i.e. larger than any NIS recorded
             run.nis_recent.append(np.inf)
-        if dof or np.isinf(run.nis_recent[-1] if run.nis_recent else 0.0):
+        if c.dof or np.isinf(run.nis_recent[-1] if run.nis_recent else 0.0):
             median_nis = float(np.median(run.nis_recent))
             if len(run.nis_recent) == run.nis_recent.maxlen and median_nis > s.nis_per_dof_max:
                 self._diverge(
@@ -401,34 +379,95 @@ class Slam:
                         else ""
                     ),
                 )
-        self.timeline.append(
-            {
-                "stamp_ns": t_ns,
-                "vehicle": vin.name,
-                "frame": f,
-                "state_size": st.n,
-                "landmarks_in_state": st.n_landmarks,
-                "landmarks_mapped": book.count,
-                "matches": len(z_obs),
-                "visible": len(visible),
-                "rejected": n_rejected,
-                "type1": n_type1,
-                "type2": n_type2,
-                "type3": n_type3,
-                "loop_closure": n_loop,
-                "sigma_pos_m": float(np.sqrt(np.trace(pose_cov[:3, :3]))),
-                "sigma_att_rad": float(np.sqrt(np.trace(pose_cov[3:, 3:]))),
-                "sigma_landmark_m": lm_std,
-                "nis": nis,
-                "nis_dof": dof,
-                "gamma": gamma_used,
-                "gamma_raised": raised,
-                "x_m": float(p[0]),
-                "y_m": float(p[1]),
-                "z_m": float(p[2]),
-                "ms": 1e3 * (time.perf_counter() - t_start),
-            }
+
+    def _associate_and_update(
+        self,
+        run: _VehicleRun,
+        t_ns: int,
+        visible: I64,
+        z_obs: F64,
+        desc_obs: NDArray[np.uint8],
+        R4: F64,
+        c: _FrameCounts,
+    ) -> None:
+        """Associate the frame's matches with the landmarks in view, update the state with
+        the accepted ones, classify them (type 1 / 2, loop closures) and log events."""
+        s = self.settings
+        vin = run.vin
+        st = self.state
+        book = self.book
+        fs = vin.features
+        v_idx = st.vehicles[vin.name].index
+        x_v = st.x[v_idx]
+        p, euler = vin.model.pose(x_v)
+        J = vin.model.pose_jacobian(x_v)
+        lm_idx = st.landmark_index(visible)  # (k, 3)
+        P_vv = st.P[np.ix_(v_idx, v_idx)]
+        P_vm = st.P[v_idx[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2)
+        P_mm = st.P[lm_idx[:, :, None], lm_idx[:, None, :]]
+        R_hat = s.filter.r_scale * R4
+        pred = predict_landmarks(
+            vin.obs, p, euler, J, visible, st.landmarks()[visible], P_vv, P_vm, P_mm, R_hat
         )
+        ids_vis = book.slot_ids[visible]
+        assoc = associate(
+            pred,
+            book.desc[ids_vis],
+            z_obs,
+            desc_obs,
+            s.gate_chi2,
+            s.descriptor_ratio,
+            s.max_descriptor_distance,
+        )
+        c.near = assoc.near_landmark
+        ok = pose_consistent(
+            pred,
+            assoc.pred_index,
+            z_obs[assoc.match_index],
+            P_vv,
+            P_mm[assoc.pred_index],
+            R_hat,
+            s.consistency_chi2,
+        )
+        c.rejected = int(np.sum(~ok))
+        if not ok.any():
+            return
+        ids = ids_vis[assoc.pred_index[ok]]
+        last_v = book.last_seen_ns[ids, run.index]
+        seen_before = last_v != NEVER
+        absent_ns = np.where(seen_before, t_ns - last_v, 0)
+        order = spread_order(
+            z_obs[assoc.match_index[ok], :2], -absent_ns.astype(float), tuple(fs.rig.size_px[0])
+        )[: s.max_updates_per_frame]
+        a_pred = assoc.pred_index[ok][order]
+        a_match = assoc.match_index[ok][order]
+        ids, seen_before, absent_ns = ids[order], seen_before[order], absent_ns[order]
+        k = len(order)
+        nv = len(v_idx)
+        H_lm = np.zeros((k, 4, k, 3))  # landmark j's rows touch only its columns
+        H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[a_pred]
+        H = np.concatenate(
+            [pred.H_v[a_pred].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1
+        )
+        cols = np.concatenate([v_idx, lm_idx[a_pred].reshape(-1)])
+        y = z_obs[a_match].reshape(-1)
+        h = pred.z[a_pred].reshape(-1)
+        res = st.update(s.filter, y, h, H, cols, np.kron(np.eye(k), R4))  # eq. 19
+        c.nis, c.dof = res.nis, 4 * k
+        c.gamma, c.gamma_raised = res.gamma, res.gamma_raised
+        self.gamma_raised += int(res.gamma_raised)
+        c.updated_slots = visible[a_pred]
+        c.used[a_match] = True
+        c.type2 = int(np.sum(~seen_before))
+        c.type1 = k - c.type2
+        loops = seen_before & (absent_ns > s.loop_closure_gap_ns)
+        c.loop = int(loops.sum())
+        book.observe(ids, run.index, t_ns)
+        if c.loop >= s.loop_closure_min_landmarks:
+            self._event(t_ns, "loop_closure", vin.name, "", c.loop, absent_ns[loops])
+        if c.type2:
+            others = self._other_observers(ids[~seen_before], run.index)
+            self._event(t_ns, "cross_vehicle", vin.name, others, c.type2, absent_ns[~seen_before])
 
     def _valid_points(self, run: _VehicleRun, sl: slice) -> NDArray[np.bool_]:
         """(M,) matches whose triangulated point can start a landmark: finite, in front, and
