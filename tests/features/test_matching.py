@@ -1,6 +1,7 @@
 """Stereo-constrained matching (eq. 20-34): window geometry on rectified and unrectified
-rigs, the vectorised candidate search against an exhaustive one, precision on rendered stereo
-pairs with known correspondences, and epipolar consistency on EuRoC and KITTI."""
+rigs, the vectorised candidate search against an exhaustive one, the vectorised matcher
+against a straightforward reference (per-keypoint loops), precision on rendered stereo pairs
+with known correspondences, and epipolar consistency on EuRoC and KITTI."""
 
 from __future__ import annotations
 
@@ -15,7 +16,12 @@ import pytest
 
 from cvslam_cli.config import AdaptiveSiftConfig, SiftConfig, StereoMatchConfig
 from cvslam_cli.features.matching import (
+    LONE_D2_QUANTILE,
+    MIN_WINDOWS_FOR_TYPICAL_D2,
     StereoMatches,
+    _quantile_f32,
+    _rig_geometry,
+    _windows,
     auto_z_min_m,
     candidate_pairs,
     epipolar_residual_px,
@@ -130,6 +136,18 @@ def test_window_holds_the_right_projections_of_depths_beyond_z_min(rig_name: str
     assert np.abs(np.einsum("ij,jk,ik->i", x_r, Fm, x_l)).max() < 1e-9 * np.abs(Fm).max() * W
 
 
+def test_row_windows_of_a_rectified_rig_equal_the_general_windows():
+    rig = RIGS["rectified"]
+    geo = _rig_geometry(rig)
+    assert geo.rows_only and not _rig_geometry(RIGS["unrectified"]).rows_only
+    uv = np.random.default_rng(6).uniform([0, 0], [W, H], (300, 2))
+    rows = _windows(uv, geo, 3.0, 1.5)
+    general = _windows(uv, dataclasses.replace(geo, rows_only=False), 3.0, 1.5)
+    for name in ("start_px", "direction", "length_px"):
+        np.testing.assert_allclose(getattr(rows, name), getattr(general, name), atol=1e-9)
+    np.testing.assert_array_equal(rows.valid, general.valid)
+
+
 @pytest.mark.parametrize("rig_name", list(RIGS))
 def test_vectorised_candidates_equal_the_exhaustive_search(rig_name: str):
     rig = RIGS[rig_name]
@@ -181,6 +199,195 @@ def test_ratio_test_and_left_right_check_on_toy_descriptors():
         left, ld, right, rd, rig, dataclasses.replace(MATCH, left_right_check=False)
     )
     assert loose.left.tolist() == [0, 1, 2]
+
+
+# -- the vectorised matcher against a straightforward reference ---------------------------
+
+
+def _reference_match(
+    luv: np.ndarray,
+    ld: np.ndarray,
+    ruv: np.ndarray,
+    rd: np.ndarray,
+    rig: StereoRig,
+    cfg: StereoMatchConfig,
+) -> StereoMatches:
+    """The matcher's rules written plainly: every (left, right) pair through
+    `SearchWindow.contains`, then a loop per left keypoint (sort of its candidates'
+    distances: D1, D2, ratio test) and per right keypoint (its nearest left keypoint; equal
+    distances go to the first left index). Distances in float64 and rounded once to float32
+    (sqrt of an integer: the same as float32 arithmetic), the ratio test in float32 as the
+    matcher does it."""
+    n, m = len(luv), len(ruv)
+    if n == 0 or m == 0:
+        return StereoMatches.empty(n, m)
+    win = search_windows(luv, rig, auto_z_min_m(rig, cfg.z_min_m), cfg.vertical_tolerance_px)
+    all_l, all_r = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(m), indexing="ij"))
+    inside = win.contains(all_l, ruv[all_r])
+    li, rj = all_l[inside], all_r[inside]
+    if len(li) == 0:
+        return StereoMatches.empty(n, m)
+
+    def distances(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        diff = ld[i].astype(np.float64) - rd[j].astype(np.float64)
+        return np.sqrt((diff**2).sum(axis=1)).astype(np.float32)
+
+    dist = distances(li, rj)
+    examined = len(li)
+    best: dict[int, tuple[int, np.float32, np.float32 | None]] = {}  # left -> (right, D1, D2)
+    for i in np.unique(li):
+        mine = np.flatnonzero(li == i)
+        order = np.argsort(dist[mine], kind="stable")
+        d2 = dist[mine[order[1]]] if len(mine) > 1 else None
+        best[int(i)] = (int(rj[mine[order[0]]]), dist[mine[order[0]]], d2)
+    multi = np.array([b[2] for b in best.values() if b[2] is not None], np.float32)
+    if len(multi) >= MIN_WINDOWS_FOR_TYPICAL_D2:
+        typical = np.float32(np.quantile(multi, LONE_D2_QUANTILE))
+    else:
+        k = min(64, n * m)
+        i = np.arange(k)
+        unrelated = distances((i * n) // k, (i * 7919 + m // 2) % m)
+        typical = np.float32(np.quantile(unrelated, LONE_D2_QUANTILE))
+        examined += k
+    nearest_left = {}
+    for j in np.unique(rj):
+        mine = np.flatnonzero(rj == j)
+        nearest_left[int(j)] = int(li[mine[np.lexsort((li[mine], dist[mine]))[0]]])
+    rows = []
+    for i, (j, d1, d2) in best.items():
+        lone = d2 is None
+        if not d1 < cfg.dist_ratio * (typical if lone else d2):
+            continue
+        if cfg.left_right_check and nearest_left[j] != i:
+            continue
+        ratio = np.float32(0.0) if lone else d1 / d2
+        rows.append((i, j, np.float32(luv[i, 0] - ruv[j, 0]), d1, ratio))
+    if not rows:
+        return StereoMatches.empty(n, m, examined)
+    left, right, disparity, distance, ratio = (list(c) for c in zip(*rows, strict=True))
+    return StereoMatches(
+        np.array(left, np.int64),
+        np.array(right, np.int64),
+        np.array(disparity, np.float32),
+        np.array(distance, np.float32),
+        np.array(ratio, np.float32),
+        examined,
+        n,
+        m,
+    )
+
+
+def _assert_same_matches(got: StereoMatches, want: StereoMatches, exact: bool = True) -> None:
+    """The same matches; distances and ratios bit for bit when `exact` (integer descriptors),
+    else to float32 rounding (the summation order of non-integer squares differs)."""
+    for name in ("left", "right", "disparity_px", "distance", "ratio"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype, name
+        if exact or name in ("left", "right", "disparity_px"):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-6, err_msg=name)
+    assert got.candidates_examined == want.candidates_examined
+    assert (got.n_left, got.n_right) == (want.n_left, want.n_right)
+
+
+def _random_scene(
+    rig: StereoRig,
+    seed: int,
+    n_true: int = 150,
+    n_other: int = 120,
+    n_dup: int = 8,
+    dtype: type = np.uint8,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Left and right keypoints (ideal pixels) and descriptors: `n_true` points at depths of
+    2-60 m seen by both cameras (right descriptor = left + noise), `n_other` unrelated
+    keypoints in each image, and exact duplicates (same position and descriptor) of `n_dup`
+    keypoints on each side, which make equal distances (ties)."""
+    rng = np.random.default_rng(seed)
+    uv_l = rng.uniform([0, 0], [W, H], (n_true, 2))
+    xy = undistort_pixels(rig.left, uv_l)
+    depth = rng.uniform(2.0, 60.0, n_true)
+    p_right = _to_right(rig, np.column_stack([xy, np.ones(n_true)]) * depth[:, None])
+    uv_r = p_right[:, :2] / p_right[:, 2:3] @ rig.right.K[:2, :2].T + rig.right.K[:2, 2]
+    uv_l = undistort_keypoints(rig.left, uv_l)
+    uv_r += rng.normal(0.0, 0.3, uv_r.shape)
+    desc_l = rng.integers(0, 120, (n_true, 128))
+    desc_r = np.clip(desc_l + rng.integers(-12, 13, desc_l.shape), 0, 255)
+    left = np.vstack([uv_l, rng.uniform([0, 0], [W, H], (n_other, 2))])
+    right = np.vstack([uv_r, rng.uniform([0, 0], [W, H], (n_other, 2))])
+    ld = np.vstack([desc_l, rng.integers(0, 120, (n_other, 128))])
+    rd = np.vstack([desc_r, rng.integers(0, 120, (n_other, 128))])
+    dup_l, dup_r = (
+        rng.choice(n_true, n_dup, replace=False),
+        rng.choice(n_true, n_dup, replace=False),
+    )
+    left, ld = np.vstack([left, left[dup_l]]), np.vstack([ld, ld[dup_l]])
+    right, rd = np.vstack([right, right[dup_r]]), np.vstack([rd, rd[dup_r]])
+    perm_l, perm_r = rng.permutation(len(left)), rng.permutation(len(right))
+    if dtype == np.float32:  # non-integer descriptors
+        return (
+            left[perm_l],
+            (ld[perm_l] + rng.uniform(0, 1, ld.shape)).astype(dtype),
+            right[perm_r],
+            (rd[perm_r] + rng.uniform(0, 1, rd.shape)).astype(dtype),
+        )
+    return left[perm_l], ld[perm_l].astype(dtype), right[perm_r], rd[perm_r].astype(dtype)
+
+
+CONFIGS = {
+    "default": MATCH,
+    "no left-right check": dataclasses.replace(MATCH, left_right_check=False),
+    "loose": dataclasses.replace(MATCH, dist_ratio=0.9, vertical_tolerance_px=4.0, z_min_m=3.0),
+}
+
+
+@pytest.mark.parametrize("cfg_name", list(CONFIGS))
+@pytest.mark.parametrize("rig_name", list(RIGS))
+def test_matches_equal_the_reference_on_random_scenes(rig_name: str, cfg_name: str):
+    rig, cfg = RIGS[rig_name], CONFIGS[cfg_name]
+    tied = 0
+    for seed in range(3):
+        left, ld, right, rd = _random_scene(rig, 10 + seed)
+        got = match_stereo(left, ld, right, rd, rig, cfg)
+        _assert_same_matches(got, _reference_match(left, ld, right, rd, rig, cfg))
+        assert len(got) > 50
+        # duplicated left keypoints tie for their right keypoint: the first left index wins
+        _, first, group = np.unique(
+            np.column_stack([left, ld]), axis=0, return_index=True, return_inverse=True
+        )
+        matched_twins = group[got.left][
+            np.bincount(group, minlength=len(first))[group[got.left]] == 2
+        ]
+        if cfg.left_right_check:
+            assert len(np.unique(matched_twins)) == len(matched_twins)
+            assert np.all(np.isin(got.left[np.isin(group[got.left], matched_twins)], first))
+        tied += len(matched_twins)
+    assert tied > 0
+
+
+@pytest.mark.parametrize("rig_name", list(RIGS))
+def test_matches_equal_the_reference_with_few_windows_and_float_descriptors(rig_name: str):
+    rig = RIGS[rig_name]
+    # a handful of keypoints: fewer than 8 windows with two candidates, so a lone candidate's
+    # D2 comes from the spread-out unrelated pairs
+    left, ld, right, rd = _random_scene(rig, 20, n_true=12, n_other=3, n_dup=1)
+    got = match_stereo(left, ld, right, rd, rig, MATCH)
+    _assert_same_matches(got, _reference_match(left, ld, right, rd, rig, MATCH))
+    assert got.candidates_examined > len(left) and np.any(got.ratio == 0)
+    # float descriptors (not integer-valued)
+    left, ld, right, rd = _random_scene(rig, 21, dtype=np.float32)
+    got = match_stereo(left, ld, right, rd, rig, MATCH)
+    _assert_same_matches(got, _reference_match(left, ld, right, rd, rig, MATCH), exact=False)
+    assert len(got) > 50
+
+
+def test_quantile_is_numpys_bit_for_bit():
+    rng = np.random.default_rng(5)
+    for size in [*range(1, 40), 100, 257, 1000]:
+        values = (rng.gamma(4.0, 80.0, size) * rng.choice([1.0, 1e-3, 1e3])).astype(np.float32)
+        for q in (0.0, 0.1, 0.25, 0.5, 0.75, 1.0):
+            want = float(np.quantile(values, q))
+            assert _quantile_f32(values.copy(), q) == want, (size, q)
 
 
 # -- rendered stereo pairs with known correspondences ---------------------------------------
@@ -274,6 +481,17 @@ def test_precision_on_rendered_pairs(rendered_pairs, rig_name: str):
             n_matchable + matchable,
         )
     assert n_correct / n_matches >= 0.98
+
+
+@pytest.mark.parametrize("rig_name", list(RIGS))
+def test_matches_equal_the_reference_on_rendered_pairs(rendered_pairs, rig_name: str):
+    for pair in rendered_pairs[rig_name]:
+        ul = undistort_keypoints(pair.rig.left, pair.left.uv_raw_px)
+        ur = undistort_keypoints(pair.rig.right, pair.right.uv_raw_px)
+        got = match_stereo(ul, pair.left.desc, ur, pair.right.desc, pair.rig, MATCH)
+        want = _reference_match(ul, pair.left.desc, ur, pair.right.desc, pair.rig, MATCH)
+        _assert_same_matches(got, want)
+        assert len(got) > 50
 
 
 def test_brute_force_examines_every_pair(rendered_pairs):
