@@ -94,6 +94,7 @@ class SlamSettings:
     loop_closure_gap_ns: int = 20_000_000_000
     loop_closure_min_landmarks: int = 3
     event_merge_ns: int = 5_000_000_000
+    joint_init_window_ns: int = 200_000_000
     nis_window: int = 20
     nis_per_dof_max: float = 10.0
 
@@ -166,6 +167,26 @@ def motion_segments(stamps_ns: I64, inputs: F64, t0_ns: int, t1_ns: int) -> tupl
 MIN_VISIBLE_FOR_LOST = 10
 
 
+@dataclass(frozen=True, eq=False)
+class _Candidates:
+    """A vehicle's unmatched stereo points of its last frame (k): nav positions m (k, 3) with
+    covariances cov (k, 3, 3) from its pose then, descriptors (k, 128), the observations z
+    (k, 4) and the frame's stamp."""
+
+    m: F64
+    cov: F64
+    desc: NDArray[np.uint8]
+    z: F64
+    stamp_ns: int
+
+    def without(self, rows: I64) -> _Candidates:
+        keep = np.ones(len(self.m), dtype=bool)
+        keep[rows] = False
+        return _Candidates(
+            self.m[keep], self.cov[keep], self.desc[keep], self.z[keep], self.stamp_ns
+        )
+
+
 @dataclass
 class _FrameCounts:
     """What one frame did (the timeline row's counts). near, used: (M,) matches inside some
@@ -196,8 +217,8 @@ class _VehicleRun:
         self.x: list[F64] = []
         self.pose_cov: list[F64] = []
         self.nis_recent: deque[float] = deque(maxlen=1)
-        # last frame's unmatched points: (nav positions (k, 3), covariances, descriptors)
-        self.candidates: tuple[F64, F64, NDArray[np.uint8]] | None = None
+        # last frame's unmatched points, which the next frame may confirm
+        self.candidates: _Candidates | None = None
         z = vin.features
         self.z_left = z.left_uv_px
         self.z_right = z.right_uv_px
@@ -310,7 +331,7 @@ class Slam:
         confirmed = self._confirm_candidates(run, sl, z_obs, desc_obs, free, R4)
         if want and len(confirmed):
             c.type3 = self._add_landmarks(run, t_ns, sl, confirmed, updated_slots, want)
-        self._new_candidates(run, sl, free)
+        self._new_candidates(run, t_ns, sl, z_obs, free)
 
         # --- record
         x_v = st.x[v_idx]
@@ -498,9 +519,9 @@ class Slam:
         pairing) is not seen again, so it never enters the map."""
         cand = run.candidates
         idx = np.flatnonzero(free & self._valid_points(run, sl))
-        if cand is None or len(cand[0]) == 0 or len(idx) == 0:
+        if cand is None or len(cand.m) == 0 or len(idx) == 0:
             return np.zeros(0, dtype=np.int64)
-        m_c, cov_c, desc_c = cand
+        m_c, cov_c, desc_c = cand.m, cand.cov, cand.desc
         vin = run.vin
         x_v = self.state.vehicle_x(vin.name)
         p, euler = vin.model.pose(x_v)
@@ -518,7 +539,9 @@ class Slam:
         )  # fmt: skip
         return idx[assoc.match_index]
 
-    def _new_candidates(self, run: _VehicleRun, sl: slice, free: NDArray[np.bool_]) -> None:
+    def _new_candidates(
+        self, run: _VehicleRun, t_ns: int, sl: slice, z_obs: F64, free: NDArray[np.bool_]
+    ) -> None:
         """This frame's free matches become the candidates the next frame may confirm."""
         fs = run.vin.features
         idx = np.flatnonzero(free & self._valid_points(run, sl))
@@ -531,7 +554,7 @@ class Slam:
         m, cov = vin.obs.landmark_from_camera_point(
             p, euler, fs.match_p_cam_m[sl][idx], fs.match_cov_cam_m2[sl][idx], pose_cov
         )
-        run.candidates = (m, cov, fs.left_desc[fs.match_left[sl]][idx])
+        run.candidates = _Candidates(m, cov, fs.left_desc[fs.match_left[sl]][idx], z_obs[idx], t_ns)
 
     def _add_landmarks(
         self,
@@ -580,14 +603,77 @@ class Slam:
         meas = J_pc @ cov_c[pick] @ J_pc.T  # (k, 3, 3)
         for j in range(k):
             P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += meas[j]
-        st.add_landmarks(m, P_mm, P_mx)
+        slots = st.add_landmarks(m, P_mm, P_mx)
         self.book.add(
             fs.left_desc[fs.match_left[sl]][pick],
             run.index,
             t_ns,
             fs.match_landmark_id[sl][pick],
         )
+        for other in self.runs.values():
+            if other is not run:
+                self._joint_initialisation(run, other, t_ns, slots)
         return k
+
+    def _joint_initialisation(
+        self, run: _VehicleRun, other: _VehicleRun, t_ns: int, slots: I64
+    ) -> None:
+        """New landmarks of `run` that `other` saw at about the same time (among the
+        unmatched points of its last frame, within `joint_init_window_ns`) are initialised
+        from both: `other`'s observation updates them right away. Its state is still at that
+        frame (a vehicle's state moves only at its own frames), so the update is exact (the
+        paper: a new landmark seen by several vehicles is initialised from all of them)."""
+        s = self.settings
+        cand = other.candidates
+        if cand is None or not len(cand.m) or t_ns - cand.stamp_ns > s.joint_init_window_ns:
+            return
+        st = self.state
+        vin = other.vin
+        v_idx = st.vehicles[vin.name].index
+        x_v = st.x[v_idx]
+        p, euler = vin.model.pose(x_v)
+        m_new = st.landmarks()[slots]
+        depth = camera_depths(vin.obs, p, euler, m_new)
+        front = np.flatnonzero(depth > 0)
+        if not len(front):
+            return
+        lm_idx = st.landmark_index(slots[front])
+        R4 = np.eye(4) * s.pixel_sigma_px**2
+        pred = predict_landmarks(
+            vin.obs, p, euler, vin.model.pose_jacobian(x_v), slots[front], m_new[front],
+            st.P[np.ix_(v_idx, v_idx)],
+            st.P[v_idx[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2),
+            st.P[lm_idx[:, :, None], lm_idx[:, None, :]],
+            s.filter.r_scale * R4,
+        )  # fmt: skip
+        ids = self.book.slot_ids[slots[front]]
+        assoc = associate(
+            pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2, s.descriptor_ratio,
+            s.max_descriptor_distance,
+        )  # fmt: skip
+        k = len(assoc.pred_index)
+        if not k:
+            return
+        a = assoc.pred_index
+        nv = len(v_idx)
+        H_lm = np.zeros((k, 4, k, 3))
+        H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[a]
+        H = np.concatenate([pred.H_v[a].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1)
+        cols = np.concatenate([v_idx, lm_idx[a].reshape(-1)])
+        res = st.update(
+            s.filter,
+            cand.z[assoc.match_index].reshape(-1),
+            pred.z[a].reshape(-1),
+            H,
+            cols,
+            np.kron(np.eye(k), R4),
+        )
+        self.gamma_raised += int(res.gamma_raised)
+        self.book.observe(ids[a], other.index, cand.stamp_ns)
+        other.candidates = cand.without(assoc.match_index)
+        self._event(
+            t_ns, "joint_initialisation", run.vin.name, vin.name, k, np.zeros(0, dtype=np.int64)
+        )
 
     def _other_observers(self, ids: I64, vehicle: int) -> str:
         bits = int(np.bitwise_or.reduce(self.book.observers[ids])) & ~(1 << vehicle)

@@ -333,6 +333,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         loop_closure_gap_ns=int(m.loop_closure_gap_s * 1e9),
         loop_closure_min_landmarks=m.loop_closure_min_landmarks,
         event_merge_ns=int(m.event_merge_s * 1e9),
+        joint_init_window_ns=int(m.joint_init_window_s * 1e9),
         nis_window=cfg.divergence.window,
         nis_per_dof_max=cfg.divergence.nis_per_dof_max,
     )
