@@ -1,0 +1,396 @@
+"""`make bench`: landmark-mode Monte Carlo of the fuse filters, EKF vs NH-infinity (issue 5).
+
+Scenario: one UAV flying at 10 m/s over textured terrain with 20 m of relief, 100 m above
+the nav origin, a downward stereo camera like `uav2_paper`'s (752x480, fx 450, baseline
+1.5 m, 10 Hz), landmark mode (`cvslam simulate --set mode=landmarks`) with the simulator's
+default landmark density, pixel noise and misses. The IMU is a consumer-grade one (10x the
+simulator's default white noise, as in tests/estimation/test_stage.py) so dead reckoning
+drifts by metres in the run, and the filter is told the same noise densities; every other
+fuse setting (NH-infinity gamma, c_w, c_v, bound, margin; association; map) is the
+config's default.
+
+`N_RUNS` seeds (0 .. N_RUNS - 1; the seed changes the terrain, the landmarks, the IMU noise
+and the observation noise, nothing else) are simulated twice: with the default wrong-match
+fraction (`landmarks.outlier_fraction`, 3 %) and with `HIGH_OUTLIERS` (20 %). The EKF and
+the NH-infinity filter run on each simulated run (paired: the same data for both).
+
+Per filter and outlier level:
+- position NEES e^T P^-1 e (e: 3-D position error against the ground truth, P: the 3x3
+  position block of the pose covariance) averaged over the runs at each frame, its time
+  average, and the fraction of frames inside the two-sided 95 % band of the mean of N
+  chi-square(3) variables, chi2.ppf([0.025, 0.975], 3N) / N (frame 0, the initial state
+  taken from the ground truth with zero error, is left out);
+- position RMSE over the runs at each frame, over all frames, and at the final frame;
+  dead reckoning's (the same IMU input, no vision; NEES from the motion model's own
+  covariance) for scale.
+The per-frame curves go to `runs/benchmarks/fuse_consistency.csv` (gitignored), the
+summary to `runs/benchmarks/fuse_consistency_summary.csv`.
+
+Asserted: no run diverges or gives a non-finite state, and vision keeps the error far below
+dead reckoning's. The issue's claim (with outliers injected, NH-infinity's position error is
+lower than the EKF's) is printed with its ratio (and a paired 95 % interval of the per-run
+ratio) and tested on its own; it does not hold at the default NH-infinity settings, so that
+test is a strict xfail carrying the measured numbers: it fails the day the claim holds.
+NEES is reported, not asserted (see BENCHMARKS.md, "Fuse: Monte Carlo consistency").
+
+Environment: CVSLAM_MC_RUNS (default 50), CVSLAM_MC_WORKERS (default min(2, CPUs)).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from numpy.typing import NDArray
+from scipy.stats import chi2
+from threadpoolctl import threadpool_limits
+
+from cvslam_cli.config import load_config
+from cvslam_cli.estimation import stage
+from cvslam_cli.estimation.slam import Slam, dead_reckoning_track
+from cvslam_cli.io.features_file import load_features
+from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.parallel import STATE, ordered_map
+from cvslam_cli.sim.scenario import LandmarkMode, load_scenario
+from cvslam_cli.sim.stage import run as simulate
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+F64 = NDArray[np.float64]
+
+ROOT = Path(__file__).resolve().parents[2]
+OUT_DIR = ROOT / "runs" / "benchmarks"
+N_RUNS = int(os.environ.get("CVSLAM_MC_RUNS", "50"))
+WORKERS = int(os.environ.get("CVSLAM_MC_WORKERS", str(min(2, os.cpu_count() or 1))))
+DURATION_S = 15.0
+DEFAULT_OUTLIERS = LandmarkMode().outlier_fraction
+HIGH_OUTLIERS = 0.20
+FILTERS = ("ekf", "hinf")
+VEHICLE = "uav1"
+# the filter is told the simulated IMU's white noise (10x the simulator's default)
+IMU_NOISE = {"accel_noise_density": 0.02, "gyro_noise_density": 1.7e-3}
+FUSE_NOISE = (
+    f"fuse.motion.accel_noise_density={IMU_NOISE['accel_noise_density']}",
+    f"fuse.motion.gyro_noise_density={IMU_NOISE['gyro_noise_density']}",
+)
+
+
+def scenario(outlier_fraction: float, duration_s: float = DURATION_S) -> dict[str, Any]:
+    """The Monte Carlo scenario (seed set per run)."""
+    return {
+        "name": "fuse_mc",
+        "mode": "landmarks",
+        "duration_s": duration_s,
+        "seed": 0,
+        "world": "terrain",
+        "terrain": {
+            "size_m": [400.0, 400.0],
+            "origin_nav_m": [-200.0, -200.0],
+            "texture_px_per_m": 1.0,
+            "relief_m": 20.0,
+            "relief_scale_m": 100.0,
+            "region_scale_m": 100.0,
+        },
+        "landmarks": {"outlier_fraction": outlier_fraction},
+        "vehicles": {
+            VEHICLE: {
+                "closed": True,
+                "speed_m_s": 10.0,
+                "waypoints_nav_m": [
+                    [0.0, -50.0, -100.0],
+                    [50.0, 0.0, -100.0],
+                    [0.0, 50.0, -100.0],
+                    [-50.0, 0.0, -100.0],
+                ],
+                "camera": {
+                    "mount": "down",
+                    "width": 752,
+                    "height": 480,
+                    "fx": 450.0,
+                    "fy": 450.0,
+                    "cx": 375.5,
+                    "cy": 239.5,
+                    "baseline_m": 1.5,
+                    "rate_hz": 10.0,
+                },
+                "imu": dict(IMU_NOISE),
+            }
+        },
+    }
+
+
+# ----------------------------------------------------------------------------- one run
+
+
+@dataclass(frozen=True, eq=False)
+class FilterRun:
+    """One filter on one simulated run: e (F, 3) position error, P (F, 3, 3) position
+    covariance (NaN after a divergence), and whether it diverged."""
+
+    e: F64
+    P: F64
+    diverged: bool
+    gamma_raised: int
+
+
+@dataclass(frozen=True, eq=False)
+class RunResult:
+    seed: int
+    t_s: F64  # (F,) frame times from the first frame
+    filters: dict[str, FilterRun]
+    e_dr: F64  # (F, 3) dead reckoning's position error
+    P_dr: F64  # (F, 3, 3) and covariance (the motion model's alone)
+
+
+def one_run(seed: int) -> RunResult:
+    """Simulate `seed` with STATE's scenario file and run the filters with STATE's config
+    overrides (for `ordered_map`)."""
+    sc = load_scenario(Path(STATE["scenario"]), seed=seed)
+    cfg = load_config((), [*FUSE_NOISE, *STATE["overrides"]])
+    filters: dict[str, FilterRun] = {}
+    with (
+        threadpool_limits(limits=1, user_api="blas"),
+        tempfile.TemporaryDirectory(prefix="fuse_mc_") as tmp,
+    ):
+        out = Path(tmp) / "sim"
+        simulate(sc, out)
+        features = {VEHICLE: load_features(out / "features" / f"{VEHICLE}.npz")[0]}
+        logs = LogSet([McapLogSource(out / f"{VEHICLE}.mcap")], cfg.logs)
+        inputs, truth = stage.build_inputs(cfg, features, logs)
+        stamps = inputs[0].features.frame_stamp_ns
+        gt = stage.truth_at(truth[VEHICLE], stamps)
+        for kind in STATE["filters"]:
+            res = Slam(inputs, stage.slam_settings(cfg.fuse, kind)).run()
+            tr = res.tracks[VEHICLE]
+            e = np.full((len(stamps), 3), np.nan)
+            P = np.full((len(stamps), 3, 3), np.nan)
+            at = np.searchsorted(stamps, tr.stamps_ns)
+            e[at] = tr.p_nav_m - gt[at]
+            P[at] = tr.pose_cov[:, :3, :3]
+            bad = res.divergence is not None or not np.isfinite(e).all()
+            filters[kind] = FilterRun(e, P, bad, res.gamma_raised)
+        dr = dead_reckoning_track(inputs[0])
+        at = np.searchsorted(dr.stamps_ns, stamps)
+        e_dr = dr.p_nav_m[at] - gt
+        P_dr = dr.pose_cov[at, :3, :3]
+    t_s = (stamps - stamps[0]) * 1e-9
+    return RunResult(seed, t_s, filters, e_dr, P_dr)
+
+
+def monte_carlo(
+    seeds: range | list[int],
+    outlier_fraction: float,
+    overrides: tuple[str, ...] = (),
+    filters: tuple[str, ...] = FILTERS,
+    workers: int = WORKERS,
+) -> list[RunResult]:
+    """Every seed simulated with `outlier_fraction` and filtered by each of `filters` with
+    the config's defaults plus `overrides` (`fuse.hinf.gamma=2`, ...)."""
+    with tempfile.TemporaryDirectory(prefix="fuse_mc_sc_") as tmp:
+        path = Path(tmp) / "scenario.yaml"
+        path.write_text(yaml.safe_dump(scenario(outlier_fraction)))
+        state = {"scenario": str(path), "overrides": tuple(overrides), "filters": filters}
+        return list(ordered_map(one_run, list(seeds), workers=workers, state=state, chunksize=1))
+
+
+# ----------------------------------------------------------------------------- statistics
+
+
+@dataclass(frozen=True, eq=False)
+class Summary:
+    """Over N runs, per frame (F,): mean NEES, RMSE; scalars over frames 1..F-1."""
+
+    n_runs: int
+    t_s: F64
+    nees_t: F64
+    rmse_t: F64
+    band: tuple[float, float]
+    nees_mean: float
+    in_band: float
+    rmse_m: float
+    final_rmse_m: float
+    run_rmse_m: F64  # (N,) each run's RMSE over frames
+    diverged: int
+    gamma_raised: int
+
+
+def nees_band(n_runs: int, dof: int = 3) -> tuple[float, float]:
+    """Two-sided 95 % band of the mean of n_runs chi-square(dof) NEES values."""
+    lo, hi = chi2.ppf([0.025, 0.975], dof * n_runs) / n_runs
+    return float(lo), float(hi)
+
+
+def summarize_errors(t_s: F64, e: F64, P: F64) -> Summary:
+    """e (N, F, 3) errors, P (N, F, 3, 3) covariances (NaN where a filter stopped)."""
+    n = e.shape[0]
+    sq = np.sum(e**2, axis=2)  # (N, F)
+    rmse_t = np.sqrt(np.nanmean(sq, axis=0))
+    run_rmse = np.sqrt(np.nanmean(sq[:, 1:], axis=1))
+    band = nees_band(n)
+    ok = np.isfinite(e).all(axis=2) & np.isfinite(P).all(axis=(2, 3))
+    Pf = np.where(ok[..., None, None], P, np.eye(3))
+    ef = np.where(ok[..., None], e, 0.0)
+    nees = np.einsum("nfi,nfi->nf", ef, np.linalg.solve(Pf, ef[..., None])[..., 0])
+    nees_t = np.nanmean(np.where(ok, nees, np.nan), axis=0)
+    inside = (nees_t[1:] >= band[0]) & (nees_t[1:] <= band[1])
+    nees_mean, in_band = float(np.nanmean(nees_t[1:])), float(inside.mean())
+    return Summary(
+        n,
+        t_s,
+        nees_t,
+        rmse_t,
+        band,
+        nees_mean,
+        in_band,
+        float(np.sqrt(np.nanmean(sq[:, 1:]))),
+        float(rmse_t[-1]),
+        run_rmse,
+        0,
+        0,
+    )
+
+
+def summarize(runs: list[RunResult], kind: str) -> Summary:
+    t_s = runs[0].t_s
+    for r in runs:
+        if len(r.t_s) != len(t_s):
+            raise AssertionError(f"seed {r.seed}: {len(r.t_s)} frames, seed 0 {len(t_s)}")
+    if kind == "deadreckoning":
+        return summarize_errors(
+            t_s, np.stack([r.e_dr for r in runs]), np.stack([r.P_dr for r in runs])
+        )
+    e = np.stack([r.filters[kind].e for r in runs])
+    P = np.stack([r.filters[kind].P for r in runs])
+    s = summarize_errors(t_s, e, P)
+    return replace(
+        s,
+        diverged=sum(r.filters[kind].diverged for r in runs),
+        gamma_raised=sum(r.filters[kind].gamma_raised for r in runs),
+    )
+
+
+def paired_ratio(a: Summary, b: Summary) -> tuple[float, float, float]:
+    """(RMSE ratio a/b over all runs and frames, mean per-run log-ratio's 95 % interval
+    as ratios lo..hi)."""
+    lr = np.log(a.run_rmse_m / b.run_rmse_m)
+    half = 1.96 * lr.std(ddof=1) / np.sqrt(len(lr)) if len(lr) > 1 else np.inf
+    m = lr.mean()
+    return a.rmse_m / b.rmse_m, float(np.exp(m - half)), float(np.exp(m + half))
+
+
+# ----------------------------------------------------------------------------- report
+
+
+LEVELS = {"default": DEFAULT_OUTLIERS, "high": HIGH_OUTLIERS}
+
+
+@dataclass(frozen=True, eq=False)
+class MonteCarlo:
+    summaries: dict[tuple[str, str], Summary]  # (level, filter or "deadreckoning")
+    wall_s: float
+
+
+def _write_csv(mc: MonteCarlo) -> tuple[Path, Path]:
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    curves, table = OUT_DIR / "fuse_consistency.csv", OUT_DIR / "fuse_consistency_summary.csv"
+    per_frame: list[pd.DataFrame] = []
+    summary: list[dict[str, Any]] = []
+    for (level, kind), s in mc.summaries.items():
+        head = {"outliers": LEVELS[level], "filter": kind}
+        band = {"band_lo": s.band[0], "band_hi": s.band[1]}
+        per_frame.append(
+            pd.DataFrame(
+                {**head, "frame": np.arange(len(s.t_s)), "t_s": s.t_s, "nees_mean": s.nees_t,
+                 **band, "rmse_m": s.rmse_t}
+            )
+        )  # fmt: skip
+        summary.append(
+            {**head, "runs": s.n_runs, "nees_mean": s.nees_mean, **band, "in_band": s.in_band,
+             "rmse_m": s.rmse_m, "final_rmse_m": s.final_rmse_m, "diverged": s.diverged,
+             "gamma_raised": s.gamma_raised}
+        )  # fmt: skip
+    pd.concat(per_frame).to_csv(curves, index=False, float_format="%.6g")
+    pd.DataFrame(summary).to_csv(table, index=False, float_format="%.6g")
+    return curves, table
+
+
+def _print_table(mc: MonteCarlo) -> None:
+    print(
+        f"\nfuse Monte Carlo: {N_RUNS} runs x {DURATION_S:.0f} s per outlier level, "
+        f"{WORKERS} workers, {mc.wall_s:.0f} s wall"
+    )
+    band = next(iter(mc.summaries.values())).band
+    print(f"95% band of the mean NEES (3 dof, N = {N_RUNS}): {band[0]:.2f} .. {band[1]:.2f}")
+    print(
+        f"{'outliers':>8} {'filter':>13} {'NEES mean':>9} {'in band':>7} {'RMSE m':>7} "
+        f"{'final m':>7} {'diverged':>8} {'gamma up':>8}"
+    )
+    for (level, kind), s in mc.summaries.items():
+        print(
+            f"{LEVELS[level]:8.0%} {kind:>13} {s.nees_mean:9.2f} {s.in_band:7.0%} {s.rmse_m:7.3f} "
+            f"{s.final_rmse_m:7.3f} {s.diverged:8d} {s.gamma_raised:8d}"
+        )
+    marks = [1.0, 3.0, 6.0, 9.0, DURATION_S]
+    print("mean NEES over time, t = " + ", ".join(f"{t:g}" for t in marks) + " s:")
+    for (level, kind), s in mc.summaries.items():
+        at = np.searchsorted(s.t_s, marks).clip(max=len(s.t_s) - 1)
+        print(f"{LEVELS[level]:8.0%} {kind:>13} " + " ".join(f"{v:6.2f}" for v in s.nees_t[at]))
+    for level in LEVELS:
+        h, k = mc.summaries[level, "hinf"], mc.summaries[level, "ekf"]
+        r, lo, hi = paired_ratio(h, k)
+        wins = float(np.mean(h.run_rmse_m < k.run_rmse_m))
+        print(
+            f"{LEVELS[level]:.0%} outliers: NH-inf / EKF RMSE {h.rmse_m:.3f} / {k.rmse_m:.3f}"
+            f" = {r:.3f} (per-run ratio 95% CI {lo:.3f} .. {hi:.3f}; NH-inf lower in "
+            f"{wins:.0%} of runs); final {h.final_rmse_m:.3f} / {k.final_rmse_m:.3f} = "
+            f"{h.final_rmse_m / k.final_rmse_m:.3f}"
+        )
+
+
+@pytest.fixture(scope="module")
+def mc() -> MonteCarlo:
+    t0 = time.perf_counter()
+    summaries: dict[tuple[str, str], Summary] = {}
+    for level, fraction in LEVELS.items():
+        runs = monte_carlo(range(N_RUNS), fraction)
+        for kind in (*FILTERS, "deadreckoning"):
+            summaries[level, kind] = summarize(runs, kind)
+    result = MonteCarlo(summaries, time.perf_counter() - t0)
+    _print_table(result)
+    curves, table = _write_csv(result)
+    print(f"per-frame curves: {curves}\nsummary: {table}")
+    return result
+
+
+def test_filters_stay_healthy_and_beat_dead_reckoning(mc: MonteCarlo) -> None:
+    for level in LEVELS:
+        dr = mc.summaries[level, "deadreckoning"]
+        for kind in FILTERS:
+            s = mc.summaries[level, kind]
+            assert s.diverged == 0, (level, kind, s.diverged)
+            assert np.isfinite(s.nees_t[1:]).all() and np.isfinite(s.rmse_t).all()
+            # vision keeps the position error a small fraction of dead reckoning's
+            assert s.final_rmse_m < 0.25 * dr.final_rmse_m, (level, kind, s, dr)
+            assert s.rmse_m < 0.5 * dr.rmse_m, (level, kind, s, dr)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="not met at the default fuse.hinf (gamma 5, c_w = c_v = 1.1): 50 runs, 20 % "
+    "outliers, NH-inf position RMSE 0.834 m vs EKF 0.772 m (ratio 1.080, per-run 95 % CI "
+    "1.054 .. 1.106; NH-inf lower in 12 % of runs); gamma never binds (no raise)",
+)
+def test_nh_infinity_position_error_below_ekf_with_outliers(mc: MonteCarlo) -> None:
+    h, k = mc.summaries["high", "hinf"], mc.summaries["high", "ekf"]
+    assert h.rmse_m < k.rmse_m, (
+        f"{HIGH_OUTLIERS:.0%} outliers: NH-inf RMSE {h.rmse_m:.3f} m >= EKF {k.rmse_m:.3f} m"
+    )
