@@ -6,7 +6,7 @@ nearest over ALL right keypoints and the ratio test at 0.8, then the same triang
 
 1. Per frame, EuRoC V1_01 pairs (752x480, unrectified) and simulated `uav2_paper` pairs
    (752x480, rectified), OpenCV limited to 1 thread (per core, as in the stage's workers;
-   our matcher is single-threaded numpy), best of repeated runs per frame:
+   our matcher runs in one thread too), best of repeated runs per frame:
    - candidates examined per left keypoint: ours (stereo windows, eq. 20-34) vs brute force
      (= number of right keypoints). Target <= 3% of brute force.
    - matching time on the SAME (adaptive) keypoints: `match_stereo` vs `match_brute_force`
@@ -66,6 +66,7 @@ SCENARIO = SCENARIO_DIR / "uav2_paper.yaml"
 SIM_SETS = ["duration_s=16.0"]  # uav1: 160 pairs, uav2 (starts at 8 s): 80 pairs
 PLAIN_RATIO = 0.8
 FRAMES_PER_DATASET = 12  # per-frame timings: frames spread over each log
+MATCH_REPEATS = 10  # matching timings: best of this many consecutive runs per frame
 
 
 # ----------------------------------------------------------------------------- data
@@ -204,10 +205,10 @@ def _measure(left: np.ndarray, right: np.ndarray, rig: StereoRig, cfg: ExtractCo
     uvl = undistort_keypoints(rig.left, kl.uv_raw_px)
     uvr = undistort_keypoints(rig.right, kr.uv_raw_px)
     m = match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo)
-    t_ours = _best(lambda: match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo), 5)
-    t_bf = _best(lambda: match_brute_force(kl.desc, kr.desc, PLAIN_RATIO), 5)
+    t_ours = _best(lambda: match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo), MATCH_REPEATS)
+    t_bf = _best(lambda: match_brute_force(kl.desc, kr.desc, PLAIN_RATIO), MATCH_REPEATS)
     (_, pdl), (_, pdr) = _plain_detect(left), _plain_detect(right)
-    t_bf_own = _best(lambda: match_brute_force(pdl, pdr, PLAIN_RATIO), 5)
+    t_bf_own = _best(lambda: match_brute_force(pdl, pdr, PLAIN_RATIO), MATCH_REPEATS)
     f_ours = _best(lambda: process_frame(left, right, rig, cfg), 2)
     f_plain = _best(lambda: _plain_frame(left, right, rig, cfg), 2)
     return (
@@ -255,7 +256,7 @@ def test_matching_time(per_frame: tuple[str, PerFrame]) -> None:
         f"{1e3 * r.match_ours_s:.2f} ms | brute force on default SIFT's {r.kp_plain:.0f} "
         f"keypoints per image {1e3 * r.match_bf_own_s:.2f} ms | {own:.1f}x faster"
     )
-    assert speedup > 1.5  # what is met: faster than brute force on the same keypoints
+    assert speedup > 3  # a floor that holds under load (quiet figures: BENCHMARKS.md)
     if speedup < 10:
         pytest.xfail(f"{name}: matching {speedup:.1f}x faster than brute force, target >= 10x")
 
