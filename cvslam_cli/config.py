@@ -165,11 +165,11 @@ class HinfConfig:
     """Nonlinear H-infinity filter (DESIGN.md section 2): Q_hat = c_w^2 Q, R_hat = c_v^2 R,
     bound gamma on the vehicle states or on all states."""
 
-    gamma: float = opt(5.0, lo=0.0, lo_open=True)
-    c_w: float = opt(1.1, lo=1.0)
-    c_v: float = opt(1.1, lo=1.0)
+    gamma: float = opt(10.0, lo=0.0, lo_open=True)
+    c_w: float = opt(1.0, lo=1.0)
+    c_v: float = opt(1.0, lo=1.0)
     bound: Literal["vehicle", "all"] = "vehicle"
-    gamma_margin: float = opt(0.1, lo=0.0, lo_open=True)
+    gamma_margin: float = opt(10.0, lo=0.0, lo_open=True)
 
 
 @dataclass(frozen=True)

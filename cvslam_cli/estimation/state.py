@@ -47,11 +47,11 @@ class FilterSettings:
     the bound gamma on the vehicle states ("vehicle") or on all states ("all")."""
 
     kind: str = "hinf"
-    gamma: float = 5.0
+    gamma: float = 10.0
     c_w: float = 1.0
     c_v: float = 1.0
     bound: str = "vehicle"
-    gamma_margin: float = 0.1
+    gamma_margin: float = 10.0
 
     @property
     def q_scale(self) -> float:
@@ -73,6 +73,9 @@ class JointState:
             self.vehicles[name] = VehicleBlock(name, model, start)
             start += model.n
         self.n_vehicle_states = start
+        # the H-infinity bound in use: None until the existence condition first fails,
+        # then the raised value (it only grows)
+        self.gamma: float | None = None
         # storage with room to grow: x and P are views of the first n entries
         self._n = start
         self._x = np.zeros(start + 3 * 64)
@@ -202,11 +205,15 @@ class JointState:
                 h,
                 H,
                 settings.r_scale * R,
-                settings.gamma,
+                self.gamma if self.gamma is not None else settings.gamma,
                 bounded=bounded,
                 margin=settings.gamma_margin,
                 cols=cols,
             )
         self.x = res.x
         self.P = res.P
+        if res.gamma_raised:
+            # adapt: the raised bound holds from now on, so that a covariance that has
+            # outgrown gamma is not inflated again at every update (which runs away)
+            self.gamma = res.gamma
         return res
