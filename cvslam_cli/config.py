@@ -216,8 +216,8 @@ class AssociationConfig:
 class MapConfig:
     """Landmarks in the filter state and their management."""
 
-    max_landmarks: int = opt(200, lo=1)
-    max_updates_per_frame: int = opt(40, lo=1)
+    max_landmarks: int = opt(150, lo=1)
+    max_updates_per_frame: int = opt(30, lo=1)
     target_tracked: int = opt(30, lo=0)
     max_new_per_frame: int = opt(15, lo=0)
     max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)

@@ -125,7 +125,7 @@ def associate(
         return Association(e, e, np.zeros(0), np.zeros(0), np.zeros(M, dtype=bool))
     S_inv = np.linalg.inv(pred.S)
     diff = z_obs[None, :, :] - pred.z[:, None, :]  # (k, M, 4)
-    d2 = np.einsum("kmi,kij,kmj->km", diff, S_inv, diff)
+    d2 = np.sum((diff @ S_inv) * diff, axis=2)  # (k, M); S_inv symmetric
     gated = d2 < gate_chi2
     near = gated.any(axis=0)
     rows = np.flatnonzero(gated.any(axis=1))
@@ -197,11 +197,11 @@ def pose_consistent(
     HtW = np.swapaxes(H_v, 1, 2) @ W  # (a, n_v, 4)
     info_prior = np.linalg.inv(P_vv)
     for _ in range(iterations):
-        A = info_prior + np.einsum("aij,ajk->ik", HtW[keep], H_v[keep])
-        b = np.einsum("aij,aj->i", HtW[keep], nu[keep])
+        A = info_prior + np.sum(HtW[keep] @ H_v[keep], axis=0)
+        b = np.sum(HtW[keep] @ nu[keep][:, :, None], axis=0)[:, 0]
         dx = np.linalg.solve(A, b)
         r = nu - H_v @ dx
-        d2 = np.einsum("ai,aij,aj->a", r, W, r)
+        d2 = np.sum((r[:, None, :] @ W)[:, 0] * r, axis=1)
         new_keep = d2 < gate_chi2
         if np.array_equal(new_keep, keep) or not new_keep.any():
             break

@@ -86,8 +86,8 @@ class SlamSettings:
     consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
     descriptor_ratio: float = 0.8
     max_descriptor_distance: float = 350.0
-    max_landmarks: int = 200
-    max_updates_per_frame: int = 40
+    max_landmarks: int = 150
+    max_updates_per_frame: int = 30
     target_tracked: int = 30
     max_new_per_frame: int = 15
     max_new_depth_sigma_ratio: float = 0.25
