@@ -153,6 +153,14 @@ class _Motion:
     gt: PoseTable
 
 
+def _sample_arrays(items: list[tuple[int, np.ndarray]], d: int) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (K,) int64, inputs (K, d)) of motion samples, in stamp order."""
+    st = np.array([s for s, _ in items], dtype=np.int64)
+    u = np.array([a for _, a in items], dtype=float).reshape(-1, d)
+    order = np.argsort(st, kind="stable")
+    return st[order], u[order]
+
+
 def _read_motion(logs: LogSet, vehicles: list[str]) -> dict[str, _Motion]:
     imu: dict[str, list[tuple[int, np.ndarray]]] = {v: [] for v in vehicles}
     odo: dict[str, list[tuple[int, np.ndarray]]] = {v: [] for v in vehicles}
@@ -167,15 +175,8 @@ def _read_motion(logs: LogSet, vehicles: list[str]) -> dict[str, _Motion]:
             gt[rec.vehicle].append(rec)
     out = {}
     for v in vehicles:
-
-        def arrays(items: list[tuple[int, np.ndarray]], d: int) -> tuple[np.ndarray, np.ndarray]:
-            st = np.array([s for s, _ in items], dtype=np.int64)
-            u = np.array([a for _, a in items], dtype=float).reshape(-1, d)
-            order = np.argsort(st, kind="stable")
-            return st[order], u[order]
-
-        i_st, i_u = arrays(imu[v], 6)
-        o_st, o_u = arrays(odo[v], 2)
+        i_st, i_u = _sample_arrays(imu[v], 6)
+        o_st, o_u = _sample_arrays(odo[v], 2)
         g = gt[v]
         out[v] = _Motion(
             i_st,
