@@ -324,6 +324,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         filter=FilterSettings(filter_kind, h.gamma, h.c_w, h.c_v, h.bound, h.gamma_margin),
         pixel_sigma_px=a.pixel_sigma_px,
         gate_chi2=float(chi2.ppf(a.gate_probability, 4)),
+        consistency_chi2=float(chi2.ppf(a.consistency_probability, 4)),
         descriptor_ratio=a.descriptor_ratio,
         max_descriptor_distance=a.max_descriptor_distance,
         max_landmarks=m.max_landmarks,
