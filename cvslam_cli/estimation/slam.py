@@ -328,9 +328,10 @@ class Slam:
         # --- new landmarks (type 3), confirmed by the previous frame's candidates
         want = min(s.max_new_per_frame, max(0, s.target_tracked - len(updated_slots)))
         free = ~c.near & ~c.used
-        confirmed = self._confirm_candidates(run, sl, z_obs, desc_obs, free, R4)
-        if want and len(confirmed):
-            c.type3 = self._add_landmarks(run, t_ns, sl, confirmed, updated_slots, want)
+        if want:  # confirming costs an association: only when new landmarks are wanted
+            confirmed = self._confirm_candidates(run, sl, z_obs, desc_obs, free, R4)
+            if len(confirmed):
+                c.type3 = self._add_landmarks(run, t_ns, sl, confirmed, updated_slots, want)
         self._new_candidates(run, t_ns, sl, z_obs, free)
 
         # --- record
