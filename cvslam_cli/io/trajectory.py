@@ -96,7 +96,7 @@ def _read_lines(path: Path, what: str) -> list[tuple[int, str]]:
     return out
 
 
-def _finite_floats(fields: list[str]) -> list[float]:
+def finite_floats(fields: list[str]) -> list[float]:
     values = [float(f) for f in fields]
     if not all(np.isfinite(values)):
         raise ValueError("not finite")
@@ -129,7 +129,7 @@ def read_tum(path: Path) -> PoseTable:
             )
         try:
             stamps.append(seconds_text_to_ns(fields[0]))
-            rows.append(_finite_floats(fields[1:]))
+            rows.append(finite_floats(fields[1:]))
         except ValueError:
             raise CvslamError(
                 f"{path}: line {no}: expected 8 finite numbers (t x y z qx qy qz qw), "
@@ -182,7 +182,7 @@ def read_kitti(path: Path, stamps_ns: I64 | None = None) -> PoseTable:
                 f"{path}: line {no}: expected 12 numbers (row-major 3x4 pose), got {len(fields)}"
             )
         try:
-            rows.append(_finite_floats(fields))
+            rows.append(finite_floats(fields))
         except ValueError:
             raise CvslamError(
                 f"{path}: line {no}: expected 12 finite numbers, got {line[:80]!r}"

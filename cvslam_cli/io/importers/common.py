@@ -20,7 +20,6 @@ import heapq
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any
 
@@ -35,12 +34,10 @@ from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
-from cvslam_cli.io.trajectory import PoseTable
+from cvslam_cli.io.trajectory import PoseTable, finite_floats, seconds_text_to_ns
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-
-_NS_PER_S = Decimal(1_000_000_000)
 
 
 @dataclass(frozen=True)
@@ -153,25 +150,6 @@ def read_yaml_mapping(path: Path, what: str) -> dict[str, Any]:
     return data
 
 
-def seconds_to_ns(text: str) -> int:
-    """Decimal seconds as text ("1403715273.26214", "1.036594e-01") -> integer ns, rounded
-    half to even, without going through a float. ValueError when not a finite number."""
-    try:
-        value = Decimal(text.strip())
-    except InvalidOperation:
-        raise ValueError(f"not a number: {text!r}") from None
-    if not value.is_finite():
-        raise ValueError(f"not a finite number: {text!r}")
-    return int((value * _NS_PER_S).to_integral_value(rounding=ROUND_HALF_EVEN))
-
-
-def _floats(fields: list[str]) -> list[float]:
-    out = [float(f) for f in fields]
-    if not all(np.isfinite(out)):
-        raise ValueError("not finite")
-    return out
-
-
 def _check_increasing(path: Path, stamps: list[int], lines: list[int]) -> None:
     for k in range(1, len(stamps)):
         if stamps[k] <= stamps[k - 1]:
@@ -208,7 +186,7 @@ def read_stamped_csv(path: Path, n_values: int, what: str) -> tuple[I64, F64]:
             )
         try:
             stamps.append(int(fields[0]))
-            values.append(_floats(fields[1 : 1 + n_values]))
+            values.append(finite_floats(fields[1 : 1 + n_values]))
         except ValueError:
             raise DatasetError(
                 f"{path}: line {no}: expected an integer timestamp [ns] and "
@@ -249,8 +227,8 @@ def read_tum(path: Path) -> PoseTable:
                 f"{path}: line {no}: expected 8 numbers (t x y z qx qy qz qw), got {len(fields)}"
             )
         try:
-            stamps.append(seconds_to_ns(fields[0]))
-            rows.append(_floats(fields[1:]))
+            stamps.append(seconds_text_to_ns(fields[0]))
+            rows.append(finite_floats(fields[1:]))
         except ValueError:
             raise DatasetError(
                 f"{path}: line {no}: expected 8 finite numbers "

@@ -43,7 +43,7 @@ from cvslam_cli.io.importers.common import (
     read_text,
     require_dir,
     rig_metadata,
-    seconds_to_ns,
+    seconds_text_to_ns,
     write_plan,
 )
 
@@ -258,7 +258,7 @@ def read_times(path: Path, n_frames: int) -> I64:
     stamps: list[int] = []
     for no, line in data_lines(text):
         try:
-            stamp = seconds_to_ns(line)
+            stamp = seconds_text_to_ns(line)
         except ValueError:
             raise DatasetError(
                 f"{path}: line {no}: expected a time in seconds, got {line[:60]!r}"
