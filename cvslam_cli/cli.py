@@ -408,6 +408,10 @@ def fuse(
             v.final_sigma_m,
             v.loop_closures,
         )
+        if v.localised_after_s is None:
+            log.warning("%s: initial pose unknown and never localised in the map", name)
+        elif v.localised_after_s > 0:
+            log.info("%s: localised in the map %.2f s after its start", name, v.localised_after_s)
     log.info(
         "%s: %d landmarks mapped, %.1fx real time (%.1f s)%s; wrote %s",
         summary.filter,

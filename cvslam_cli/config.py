@@ -190,8 +190,22 @@ class MotionConfig:
 
 
 @dataclass(frozen=True)
+class UnknownPoseConfig:
+    """A vehicle whose initial pose is unknown: it starts from a rough prior, the `source`
+    pose moved by `offset_m` (nav frame) and turned by `yaw_offset_rad`, with standard
+    deviations `position_sigma_m` (each axis) and `yaw_sigma_rad`, and is localised in the
+    shared map once it sees mapped landmarks."""
+
+    offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    yaw_offset_rad: float = 0.0
+    position_sigma_m: float = opt(20.0, lo=0.0, lo_open=True)
+    yaw_sigma_rad: float = opt(0.5, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
 class InitialConfig:
-    """Initial vehicle state and its uncertainty (standard deviations)."""
+    """Initial vehicle state and its uncertainty (standard deviations); vehicles with an
+    unknown initial pose and how they are localised in the shared map."""
 
     source: Literal["ground_truth", "origin"] = "ground_truth"
     position_sigma_m: float = opt(0.1, lo=0.0, lo_open=True)
@@ -200,6 +214,10 @@ class InitialConfig:
     angular_rate_sigma_rad_s: float = opt(0.05, lo=0.0, lo_open=True)
     accel_bias_sigma_m_s2: float = opt(0.05, lo=0.0, lo_open=True)
     gyro_bias_sigma_rad_s: float = opt(2.0e-3, lo=0.0, lo_open=True)
+    unknown: dict[str, UnknownPoseConfig] = opt({})
+    localise_min_inliers: int = opt(12, lo=4)
+    localise_reprojection_px: float = opt(2.0, lo=0.0, lo_open=True)
+    localise_prior_probability: float = opt(0.999, lo=0.5, hi=1.0, lo_open=True)
 
 
 @dataclass(frozen=True)

@@ -102,6 +102,12 @@ class MotionModel(Protocol):
         """(n, n) diagonal covariance from the standard deviations of `init`."""
         ...
 
+    def with_pose(self, x: F64, p_nav_m: F64, euler_rad: F64) -> F64:
+        """(n,) state x moved to the pose (p_nav_m, euler_rad), the motion it carries kept
+        (a velocity in the nav frame turns with the attitude; body-frame states and biases
+        stay). Used to relinearise a vehicle that was localised in the map."""
+        ...
+
 
 def _check_nonnegative(what: str, obj: object, names: tuple[str, ...]) -> None:
     for name in names:
@@ -194,6 +200,13 @@ class InsModel:
         if self.biases:
             s += [init.accel_bias_m_s2] * 3 + [init.gyro_bias_rad_s] * 3
         return np.diag(np.square(s))
+
+    def with_pose(self, x: F64, p_nav_m: F64, euler_rad: F64) -> F64:
+        """p and Psi replaced; v (body frame) and the biases kept."""
+        x_new = np.array(x, dtype=float)
+        x_new[0:3] = _vec3(p_nav_m, "p_nav_m")
+        x_new[6:9] = _vec3(euler_rad, "euler_rad")
+        return x_new
 
 
 # ----------------------------------------------------------------------------- odometry
@@ -301,6 +314,9 @@ class OdometryModel:
     def initial_covariance(self, init: InitialUncertainty) -> F64:
         return np.diag(np.square([init.position_m, init.position_m, init.attitude_rad]))
 
+    def with_pose(self, x: F64, p_nav_m: F64, euler_rad: F64) -> F64:
+        return self.initial_state(p_nav_m, euler_rad, np.zeros(3), np.zeros(3))
+
 
 # ----------------------------------------------------------------------------- constant velocity
 
@@ -386,6 +402,16 @@ class ConstantVelocityModel:
             + [init.angular_rate_rad_s] * 3
         )
         return np.diag(np.square(s))
+
+    def with_pose(self, x: F64, p_nav_m: F64, euler_rad: F64) -> F64:
+        """p and Psi replaced; v (nav frame) turned with the attitude, w (body) kept."""
+        psi = _vec3(euler_rad, "euler_rad")
+        turn = euler_zyx_to_matrix(*psi) @ euler_zyx_to_matrix(*x[6:9]).T
+        x_new = np.array(x, dtype=float)
+        x_new[0:3] = _vec3(p_nav_m, "p_nav_m")
+        x_new[3:6] = turn @ x_new[3:6]
+        x_new[6:9] = psi
+        return x_new
 
 
 # ----------------------------------------------------------------------------- several steps

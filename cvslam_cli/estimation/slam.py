@@ -51,6 +51,8 @@ from cvslam_cli.estimation.association import (
     predict_landmarks,
     spread_order,
 )
+from cvslam_cli.estimation.filters import UpdateResult
+from cvslam_cli.estimation.localise import localise
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.motion_models import MotionModel, propagate
 from cvslam_cli.estimation.observation import StereoObservationModel
@@ -65,7 +67,9 @@ I64 = NDArray[np.int64]
 class VehicleInput:
     """One vehicle: its motion model, initial state x0 (n,) / P0 (n, n) at `start_ns`,
     motion samples `motion_stamps_ns` (K,) with inputs (K, input_size) (empty for the
-    constant-velocity model), its features and stereo observation model."""
+    constant-velocity model), its features and stereo observation model. `pose_known` False:
+    x0 is only a rough prior; the vehicle is localised in the shared map first
+    (`localise.py`) and neither updates nor maps until then."""
 
     name: str
     model: MotionModel
@@ -76,6 +80,7 @@ class VehicleInput:
     motion_inputs: F64
     features: FeatureSet
     obs: StereoObservationModel
+    pose_known: bool = True
 
 
 @dataclass(frozen=True)
@@ -97,6 +102,9 @@ class SlamSettings:
     joint_init_window_ns: int = 200_000_000
     nis_window: int = 20
     nis_per_dof_max: float = 10.0
+    localise_min_inliers: int = 12
+    localise_reprojection_px: float = 2.0
+    localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
 
 
 @dataclass(frozen=True, eq=False)
@@ -217,6 +225,8 @@ class _VehicleRun:
         self.x: list[F64] = []
         self.pose_cov: list[F64] = []
         self.nis_recent: deque[float] = deque(maxlen=1)
+        # when the vehicle's pose became known: its start, or when it was localised
+        self.localised_ns: int | None = vin.start_ns if vin.pose_known else None
         # last frame's unmatched points, which the next frame may confirm
         self.candidates: _Candidates | None = None
         z = vin.features
@@ -310,13 +320,18 @@ class Slam:
         p, euler = vin.model.pose(x_v)
         R4 = np.eye(4) * s.pixel_sigma_px**2
 
-        # --- predict the landmarks in view, associate, update
-        visible = self._visible(vin, p, euler)
+        # --- predict the landmarks in view, associate, update (or localise first)
         c = _FrameCounts(
             near=np.zeros(len(z_obs), dtype=bool), used=np.zeros(len(z_obs), dtype=bool)
         )
-        if len(visible) and len(z_obs):
-            self._associate_and_update(run, t_ns, visible, z_obs, desc_obs, R4, c)
+        localising = run.localised_ns is None
+        if localising:
+            visible = np.zeros(0, dtype=np.int64)
+            self._localise(run, t_ns, z_obs, desc_obs, c)
+        else:
+            visible = self._visible(vin, p, euler)
+            if len(visible) and len(z_obs):
+                self._associate_and_update(run, t_ns, visible, z_obs, desc_obs, R4, c)
         updated_slots = c.updated_slots
 
         # landmark uncertainty of this frame's updated landmarks (before any eviction)
@@ -325,14 +340,18 @@ class Slam:
             lm_cov = st.landmark_covariances(updated_slots)
             lm_std = float(np.sqrt(np.mean(np.trace(lm_cov, axis1=1, axis2=2))))
 
-        # --- new landmarks (type 3), confirmed by the previous frame's candidates
+        # --- new landmarks (type 3), confirmed by the previous frame's candidates; none
+        # while (or in the frame where) the vehicle is being localised
         want = min(s.max_new_per_frame, max(0, s.target_tracked - len(updated_slots)))
         free = ~c.near & ~c.used
-        if want:  # confirming costs an association: only when new landmarks are wanted
+        if want and not localising:  # confirming costs an association: only when wanted
             confirmed = self._confirm_candidates(run, sl, z_obs, desc_obs, free, R4)
             if len(confirmed):
                 c.type3 = self._add_landmarks(run, t_ns, sl, confirmed, updated_slots, want)
-        self._new_candidates(run, t_ns, sl, z_obs, free)
+        if run.localised_ns is None:
+            run.candidates = None
+        else:
+            self._new_candidates(run, t_ns, sl, z_obs, free)
 
         # --- record
         x_v = st.x[v_idx]
@@ -360,6 +379,7 @@ class Slam:
                 "type2": c.type2,
                 "type3": c.type3,
                 "loop_closure": c.loop,
+                "localised": run.localised_ns is not None,
                 "sigma_pos_m": float(np.sqrt(np.trace(pose_cov[:3, :3]))),
                 "sigma_att_rad": float(np.sqrt(np.trace(pose_cov[3:, 3:]))),
                 "sigma_landmark_m": lm_std,
@@ -420,17 +440,8 @@ class Slam:
         book = self.book
         fs = vin.features
         v_idx = st.vehicles[vin.name].index
-        x_v = st.x[v_idx]
-        p, euler = vin.model.pose(x_v)
-        J = vin.model.pose_jacobian(x_v)
-        lm_idx = st.landmark_index(visible)  # (k, 3)
-        P_vv = st.P[np.ix_(v_idx, v_idx)]
-        P_vm = st.P[v_idx[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2)
-        P_mm = st.P[lm_idx[:, :, None], lm_idx[:, None, :]]
         R_hat = s.filter.r_scale * R4
-        pred = predict_landmarks(
-            vin.obs, p, euler, J, visible, st.landmarks()[visible], P_vv, P_vm, P_mm, R_hat
-        )
+        pred, P_vv, P_mm = self._predict_slots(vin, visible)
         ids_vis = book.slot_ids[visible]
         assoc = associate(
             pred,
@@ -465,19 +476,9 @@ class Slam:
         a_match = assoc.match_index[ok][order]
         ids, seen_before, absent_ns = ids[order], seen_before[order], absent_ns[order]
         k = len(order)
-        nv = len(v_idx)
-        H_lm = np.zeros((k, 4, k, 3))  # landmark j's rows touch only its columns
-        H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[a_pred]
-        H = np.concatenate(
-            [pred.H_v[a_pred].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1
-        )
-        cols = np.concatenate([v_idx, lm_idx[a_pred].reshape(-1)])
-        y = z_obs[a_match].reshape(-1)
-        h = pred.z[a_pred].reshape(-1)
-        res = st.update(s.filter, y, h, H, cols, np.kron(np.eye(k), R4))  # eq. 19
+        res = self._stacked_update(v_idx, pred, a_pred, z_obs[a_match])
         c.nis, c.dof = res.nis, 4 * k
         c.gamma, c.gamma_raised = res.gamma, res.gamma_raised
-        self.gamma_raised += int(res.gamma_raised)
         c.updated_slots = visible[a_pred]
         c.used[a_match] = True
         c.type2 = int(np.sum(~seen_before))
@@ -490,6 +491,102 @@ class Slam:
         if c.type2:
             others = self._other_observers(ids[~seen_before], run.index)
             self._event(t_ns, "cross_vehicle", vin.name, others, c.type2, absent_ns[~seen_before])
+
+    def _predict_slots(self, vin: VehicleInput, slots: I64) -> tuple[LandmarkPrediction, F64, F64]:
+        """The landmarks in `slots` predicted into vin's images with their innovation
+        covariances; also P_vv (n_v, n_v) and P_mm (k, 3, 3)."""
+        st = self.state
+        v_idx = st.vehicles[vin.name].index
+        x_v = st.x[v_idx]
+        p, euler = vin.model.pose(x_v)
+        lm_idx = st.landmark_index(slots)  # (k, 3)
+        P_vv = st.P[np.ix_(v_idx, v_idx)]
+        P_vm = st.P[v_idx[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2)
+        P_mm = st.P[lm_idx[:, :, None], lm_idx[:, None, :]]
+        R_hat = self.settings.filter.r_scale * np.eye(4) * self.settings.pixel_sigma_px**2
+        pred = predict_landmarks(
+            vin.obs, p, euler, vin.model.pose_jacobian(x_v), slots, st.landmarks()[slots],
+            P_vv, P_vm, P_mm, R_hat,
+        )  # fmt: skip
+        return pred, P_vv, P_mm
+
+    def _stacked_update(
+        self, v_idx: I64, pred: LandmarkPrediction, rows: I64, z: F64
+    ) -> UpdateResult:
+        """One update (eq. 19) with observations z (k, 4) of the predicted landmarks
+        `pred` rows `rows` (k,): H touches the vehicle block and each landmark's 3 columns."""
+        s = self.settings
+        k, nv = len(rows), len(v_idx)
+        H_lm = np.zeros((k, 4, k, 3))  # landmark j's rows touch only its columns
+        H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[rows]
+        H = np.concatenate([pred.H_v[rows].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1)
+        cols = np.concatenate([v_idx, self.state.landmark_index(pred.slots[rows]).reshape(-1)])
+        R = np.kron(np.eye(k), np.eye(4) * s.pixel_sigma_px**2)
+        res = self.state.update(s.filter, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R)
+        self.gamma_raised += int(res.gamma_raised)
+        return res
+
+    def _localise(
+        self,
+        run: _VehicleRun,
+        t_ns: int,
+        z_obs: F64,
+        desc_obs: NDArray[np.uint8],
+        c: _FrameCounts,
+    ) -> None:
+        """Try to localise a vehicle whose pose is not known yet in the landmarks of the
+        state (`localise.py`). On success, and if the pose found is inside the vehicle's
+        prior (chi-square gate on position), the vehicle is relinearised at that pose (its
+        covariance, the broad prior, is kept) and updated with the inlier landmarks: from
+        then on it is an ordinary vehicle."""
+        s = self.settings
+        st = self.state
+        vin = run.vin
+        if st.n_landmarks < s.localise_min_inliers or len(z_obs) < s.localise_min_inliers:
+            return
+        book = self.book
+        found = localise(
+            vin.obs, z_obs, desc_obs, st.landmarks(), book.desc[book.slot_ids],
+            ratio=s.descriptor_ratio, max_descriptor_distance=s.max_descriptor_distance,
+            reprojection_px=s.localise_reprojection_px, min_inliers=s.localise_min_inliers,
+            seed=len(run.stamps),
+        )  # fmt: skip
+        if found is None:
+            return
+        v_idx = st.vehicles[vin.name].index
+        x_v = st.x[v_idx]
+        p_prior, euler_prior = vin.model.pose(x_v)
+        J = vin.model.pose_jacobian(x_v)
+        cov_p = (J @ st.P[np.ix_(v_idx, v_idx)] @ J.T)[:3, :3]
+        d = found.p_nav_m - p_prior
+        d2 = float(d @ np.linalg.solve(cov_p, d))
+        if d2 > s.localise_prior_chi2:
+            c.rejected = len(found.match_rows)
+            return
+        euler = found.euler_rad.copy()  # angles continuous with the state's
+        euler = euler_prior + (euler - euler_prior + np.pi) % (2 * np.pi) - np.pi
+        st.x[v_idx] = vin.model.with_pose(x_v, found.p_nav_m, euler)
+        slots = found.landmark_rows
+        pred, _, _ = self._predict_slots(vin, slots)
+        rows = np.arange(len(slots))
+        res = self._stacked_update(v_idx, pred, rows, z_obs[found.match_rows])
+        k = len(slots)
+        c.nis, c.dof = res.nis, 4 * k
+        c.gamma, c.gamma_raised = res.gamma, res.gamma_raised
+        c.updated_slots = slots
+        c.used[found.match_rows] = True
+        ids = book.slot_ids[slots]
+        c.type2 = k
+        others = self._other_observers(ids, run.index)
+        book.observe(ids, run.index, t_ns)
+        run.localised_ns = t_ns
+        after_s = (t_ns - vin.start_ns) * 1e-9
+        self._event(
+            t_ns, "localisation", vin.name, others, k, np.zeros(0, dtype=np.int64),
+            f"localised {after_s:.2f} s after its start: PnP on {k} of {found.candidates} "
+            f"descriptor pairs, reprojection RMS {found.rms_px:.2f} px, moved "
+            f"{np.linalg.norm(d):.1f} m from its prior",
+        )  # fmt: skip
 
     def _valid_points(self, run: _VehicleRun, sl: slice) -> NDArray[np.bool_]:
         """(M,) matches whose triangulated point can start a landmark: finite, in front, and
@@ -638,15 +735,7 @@ class Slam:
         front = np.flatnonzero(depth > 0)
         if not len(front):
             return
-        lm_idx = st.landmark_index(slots[front])
-        R4 = np.eye(4) * s.pixel_sigma_px**2
-        pred = predict_landmarks(
-            vin.obs, p, euler, vin.model.pose_jacobian(x_v), slots[front], m_new[front],
-            st.P[np.ix_(v_idx, v_idx)],
-            st.P[v_idx[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2),
-            st.P[lm_idx[:, :, None], lm_idx[:, None, :]],
-            s.filter.r_scale * R4,
-        )  # fmt: skip
+        pred, _, _ = self._predict_slots(vin, slots[front])
         ids = self.book.slot_ids[slots[front]]
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2, s.descriptor_ratio,
@@ -656,20 +745,7 @@ class Slam:
         if not k:
             return
         a = assoc.pred_index
-        nv = len(v_idx)
-        H_lm = np.zeros((k, 4, k, 3))
-        H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[a]
-        H = np.concatenate([pred.H_v[a].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1)
-        cols = np.concatenate([v_idx, lm_idx[a].reshape(-1)])
-        res = st.update(
-            s.filter,
-            cand.z[assoc.match_index].reshape(-1),
-            pred.z[a].reshape(-1),
-            H,
-            cols,
-            np.kron(np.eye(k), R4),
-        )
-        self.gamma_raised += int(res.gamma_raised)
+        self._stacked_update(v_idx, pred, a, cand.z[assoc.match_index])
         self.book.observe(ids[a], other.index, cand.stamp_ns)
         other.candidates = cand.without(assoc.match_index)
         self._event(

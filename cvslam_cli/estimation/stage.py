@@ -86,6 +86,9 @@ class VehicleFuse:
     rmse_deadreckoning_m: float
     final_sigma_m: float
     loop_closures: int
+    # seconds from the vehicle's start until its pose was known: 0 for a known initial
+    # pose, the localisation time for an unknown one, None if it was never localised
+    localised_after_s: float | None = 0.0
 
 
 @dataclass(frozen=True)
@@ -279,6 +282,12 @@ def build_inputs(
         init.accel_bias_sigma_m_s2,
         init.gyro_bias_sigma_rad_s,
     )
+    unknown_names = sorted(set(init.unknown) - set(vehicles))
+    if unknown_names:
+        raise CvslamError(
+            f"fuse.initial.unknown: no vehicle {', '.join(unknown_names)} in this run "
+            f"(vehicles: {', '.join(vehicles)})"
+        )
     inputs = []
     for v in vehicles:
         fs = features[v]
@@ -298,8 +307,21 @@ def build_inputs(
         start, p0, e0, v0, w0 = _initial_pose(
             cfg.fuse, v, gt, int(fs.frame_stamp_ns[0]), first_motion
         )
+        prior = init.unknown.get(v)
+        if prior is not None:  # a rough prior only: moved, turned, and wide
+            turn = euler_zyx_to_matrix(0.0, 0.0, prior.yaw_offset_rad)
+            p0 = p0 + np.asarray(prior.offset_m)
+            e0 = e0 + np.array([0.0, 0.0, prior.yaw_offset_rad])
+            v0 = turn @ v0
         x0 = model.initial_state(p0, e0, v0, w0)
         P0 = model.initial_covariance(unc)
+        if prior is not None:
+            names = model.state_names
+            for i, nm in enumerate(names):
+                if nm in ("p_n", "p_e", "p_d"):
+                    P0[i, i] = prior.position_sigma_m**2
+                elif nm == "yaw":
+                    P0[i, i] = prior.yaw_sigma_rad**2
         inputs.append(
             VehicleInput(
                 v,
@@ -311,6 +333,7 @@ def build_inputs(
                 U,
                 fs,
                 StereoObservationModel.from_rig(stereo_rig(fs.rig)),
+                pose_known=prior is None,
             )
         )
     return inputs, {v: motion[v].gt for v in vehicles}
@@ -338,6 +361,9 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         joint_init_window_ns=int(m.joint_init_window_s * 1e9),
         nis_window=cfg.divergence.window,
         nis_per_dof_max=cfg.divergence.nis_per_dof_max,
+        localise_min_inliers=cfg.initial.localise_min_inliers,
+        localise_reprojection_px=cfg.initial.localise_reprojection_px,
+        localise_prior_chi2=float(chi2.ppf(cfg.initial.localise_prior_probability, 3)),
     )
 
 
@@ -503,6 +529,14 @@ def run(
         loops = sum(
             1 for e in res.events if e["event"] == "loop_closure" and e["vehicle"] == v.name
         )
+        localised_after_s: float | None = 0.0
+        if not v.pose_known:
+            found = [
+                e["stamp_ns"]
+                for e in res.events
+                if e["event"] == "localisation" and e["vehicle"] == v.name
+            ]
+            localised_after_s = (found[0] - v.start_ns) * 1e-9 if found else None
         vehicles[v.name] = VehicleFuse(
             frames=len(tr.stamps_ns),
             model=v.model.kind,
@@ -515,6 +549,7 @@ def run(
             if len(tr.stamps_ns)
             else float("nan"),
             loop_closures=loops,
+            localised_after_s=localised_after_s,
         )
     summary = FuseSummary(
         out_dir,

@@ -237,6 +237,33 @@ def test_initial_state_has_the_given_pose(name):
         np.testing.assert_array_equal(x[9:12], w_body)
 
 
+@pytest.mark.parametrize("name", list(MODELS))
+def test_with_pose_moves_the_pose_and_keeps_the_motion(name):
+    """Relinearising at a new pose keeps the motion: the same body velocity and rates (nav
+    velocity turned with the attitude), the same biases."""
+    model = MODELS[name]
+    p, euler = np.array([3.0, -4.0, -0.3]), np.array([0.05, -0.1, 2.0])
+    v_nav, w_body = np.array([1.0, 2.0, -0.5]), np.array([0.01, 0.02, 0.3])
+    p2, euler2 = np.array([13.0, 6.0, -1.3]), np.array([0.02, 0.04, 2.6])
+    if model.kind == "odometry":
+        euler[:2] = euler2[:2] = 0.0
+        p2[2] = p[2] = model.z_nav_m
+    x = model.initial_state(p, euler, v_nav, w_body)
+    if model.kind == "ins":
+        x[9:] = np.arange(1, model.n - 8) * 1e-3  # biases (if any)
+    y = model.with_pose(x, p2, euler2)
+    p_out, e_out = model.pose(y)
+    np.testing.assert_allclose(p_out, p2, atol=1e-14)
+    np.testing.assert_allclose(e_out, euler2, atol=1e-14)
+    if model.kind == "ins":
+        np.testing.assert_array_equal(y[3:6], x[3:6])
+        np.testing.assert_array_equal(y[9:], x[9:])
+    if model.kind == "constant_velocity":
+        C, C2 = euler_zyx_to_matrix(*euler), euler_zyx_to_matrix(*euler2)
+        np.testing.assert_allclose(C2.T @ y[3:6], C.T @ x[3:6], atol=1e-14)
+        np.testing.assert_array_equal(y[9:12], x[9:12])
+
+
 def test_ins_integrates_noise_free_imu_to_the_truth():
     traj = waypoint_trajectory(
         np.array([[0, 0, -80], [100, 20, -85], [150, 120, -80], [40, 160, -75]], float),
