@@ -236,10 +236,12 @@ class MapConfig:
     """Landmarks in the filter state and their management."""
 
     max_landmarks: int = opt(150, lo=1)
+    max_landmarks_total: int = opt(400, lo=1)
     max_updates_per_frame: int = opt(30, lo=1)
     target_tracked: int = opt(30, lo=0)
     max_new_per_frame: int = opt(15, lo=0)
     max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)
+    max_view_angle_deg: float = opt(80.0, lo=0.0, hi=180.0, lo_open=True)
     loop_closure_gap_s: float = opt(20.0, lo=0.0, lo_open=True)
     loop_closure_min_landmarks: int = opt(3, lo=1)
     event_merge_s: float = opt(5.0, lo=0.0)

@@ -1,16 +1,28 @@
 """Map management: the book of every landmark ever mapped, and which are in the filter state.
 
-Each landmark has a global id (in order of creation) and keeps, whether it is in the state or
-not: its descriptor (from the frame that created it), which vehicles observed it (a bitmask),
-how often, when it was first and last seen (per vehicle), and its estimate. The state holds
-at most `max_landmarks`; when a frame needs room, landmarks are evicted (marginalised out,
-`JointState.remove_landmarks`) and keep their last estimate in the output map.
+Each landmark has a global id (in order of creation) and keeps, whether it is in the state
+or not: its descriptor (from the frame that created it), which vehicles observed it (a
+bitmask), how often, when it was first and last seen (per vehicle), and its estimate. The
+state holds at most `max_landmarks` per vehicle (up to `max_landmarks_total`); when a frame
+needs room, landmarks are evicted (marginalised out, `JointState.remove_landmarks`) and keep
+their last estimate in the output map.
 
-Eviction rule (keep what is most useful for later re-observation): landmarks observed in
-the current frame are never evicted; of the others, the ones with the fewest observations go
-first (a landmark tracked over many frames is distinctive and well placed, and is the one a
-loop closure or another vehicle will find again; one seen once or twice rarely is), ties
-broken by the largest position uncertainty (the least a re-observation would correct).
+Eviction rule (keep what is most useful for later re-observation): landmarks observed in the
+current frame are never evicted, and those observed or created in another vehicle's latest
+frame go last (that vehicle is tracking them and has not had its next frame yet: with
+several vehicles adding landmarks in turn, evicting them would make each vehicle evict the
+others' landmarks before they are ever tracked; with one vehicle this group is empty);
+within each group the ones with the fewest observations go first (a landmark tracked over
+many frames is distinctive and well placed, and is the one a loop closure or another vehicle
+will find again; one seen once or twice rarely is), ties broken by the largest position
+uncertainty (the least a re-observation would correct).
+
+Viewing directions: each landmark keeps the sum of the unit vectors from it to the cameras
+that observed it. A landmark is only expected in a view whose direction is within a maximum
+angle of their mean (as ORB-SLAM does): a point on a wall or a box is not visible from behind
+it, nor recognisable at a much more oblique angle, so a vehicle looking at the other side of
+an obstacle (as two ground robots driving towards each other do) must not count it as
+predicted in view.
 """
 
 from __future__ import annotations
@@ -40,6 +52,7 @@ class LandmarkBook:
         self.true_id = np.full(capacity, -1, dtype=np.int64)
         self.p_nav_m = np.zeros((capacity, 3))
         self.std_m = np.zeros((capacity, 3))
+        self.view_sum = np.zeros((capacity, 3))
         self.slot_ids = np.zeros(0, dtype=np.int64)
 
     def _grow(self, need: int) -> None:
@@ -56,6 +69,7 @@ class LandmarkBook:
             "true_id",
             "p_nav_m",
             "std_m",
+            "view_sum",
         ):
             old = getattr(self, name)
             fill = NEVER if name == "last_seen_ns" else (-1 if name == "true_id" else 0)
@@ -69,8 +83,10 @@ class LandmarkBook:
         vehicle: int,
         stamp_ns: int,
         true_id: I64,
+        view_dir: F64,
     ) -> I64:
-        """Register k new landmarks (appended to the state's slots). Returns their ids."""
+        """Register k new landmarks (appended to the state's slots), seen along the unit
+        vectors view_dir (k, 3) (landmark to camera, nav frame). Returns their ids."""
         k = len(desc)
         ids = np.arange(self.count, self.count + k)
         self._grow(self.count + k)
@@ -80,23 +96,41 @@ class LandmarkBook:
         self.first_seen_ns[ids] = stamp_ns
         self.last_seen_ns[ids, vehicle] = stamp_ns
         self.true_id[ids] = true_id
+        self.view_sum[ids] = view_dir
         self.count += k
         self.slot_ids = np.concatenate([self.slot_ids, ids])
         return ids
 
-    def observe(self, ids: I64, vehicle: int, stamp_ns: int) -> None:
+    def observe(self, ids: I64, vehicle: int, stamp_ns: int, view_dir: F64) -> None:
+        """Landmarks `ids` (k,) observed by `vehicle` along view_dir (k, 3) (unit vectors,
+        landmark to camera)."""
         self.n_obs[ids] += 1
         self.observers[ids] |= 1 << vehicle
         self.last_seen_ns[ids, vehicle] = stamp_ns
+        self.view_sum[ids] += view_dir
 
-    def eviction_order(self, protected_slots: I64, trace_cov: F64) -> I64:
-        """Slots that may be evicted, most evictable first (module docstring). trace_cov (L,)."""
+    def seen_from(self, slots: I64, view_dir: F64, min_cos: float) -> NDArray[np.bool_]:
+        """(k,) whether landmarks in `slots` are viewed along view_dir (k, 3) (unit vectors)
+        within the maximum angle (cos >= min_cos) of their mean viewing direction."""
+        mean = self.view_sum[self.slot_ids[np.asarray(slots, dtype=np.int64)]]
+        norm = np.linalg.norm(mean, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos = np.einsum("ij,ij->i", mean, view_dir) / norm
+        return (norm == 0) | (cos >= min_cos)
+
+    def eviction_order(self, protected_slots: I64, trace_cov: F64, latest_frame_ns: I64) -> I64:
+        """Slots that may be evicted, most evictable first (module docstring). trace_cov (L,):
+        trace of each landmark's covariance; latest_frame_ns (n_vehicles,): each other
+        vehicle's latest frame stamp (NEVER for the vehicle evicting, and before a first
+        frame)."""
         L = len(self.slot_ids)
         ok = np.ones(L, dtype=bool)
         ok[np.asarray(protected_slots, dtype=np.int64)] = False
         cand = np.flatnonzero(ok)
-        n_obs = self.n_obs[self.slot_ids[cand]]
-        return cand[np.lexsort((-trace_cov[cand], n_obs))]
+        ids = self.slot_ids[cand]
+        latest = np.asarray(latest_frame_ns, dtype=np.int64)[None, :]
+        in_view = np.any((self.last_seen_ns[ids] == latest) & (latest != NEVER), axis=1)
+        return cand[np.lexsort((-trace_cov[cand], self.n_obs[ids], in_view))]
 
     def store_estimates(self, slots: I64, p_nav_m: F64, cov: F64) -> None:
         """Record the current estimate (k, 3) and covariance (k, 3, 3) of landmarks in slots."""

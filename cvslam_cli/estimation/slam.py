@@ -18,7 +18,7 @@ ground station would. For a frame of vehicle v at time t:
 4. map: when fewer than `target_tracked` landmarks were updated, new ones are initialised
    from the frame's triangulated points with the inverse model and their covariance and
    cross-covariance from the pose (standard SLAM augmentation); the state is kept under
-   `max_landmarks` by eviction (`mapping.py`);
+   `max_landmarks` per vehicle (up to `max_landmarks_total`) by eviction (`mapping.py`);
 5. record: pose and its covariance, one timeline row, events (loop closure: a type-1
    re-observation after more than `loop_closure_gap_s`; type 2; divergence).
 
@@ -58,6 +58,7 @@ from cvslam_cli.estimation.motion_models import MotionModel, propagate
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.state import FilterSettings, JointState
 from cvslam_cli.features.format import FeatureSet
+from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -91,7 +92,8 @@ class SlamSettings:
     consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
     descriptor_ratio: float = 0.8
     max_descriptor_distance: float = 350.0
-    max_landmarks: int = 150
+    max_landmarks: int = 150  # per vehicle in the filter ...
+    max_landmarks_total: int = 400  # ... up to this many in all
     max_updates_per_frame: int = 30
     target_tracked: int = 30
     max_new_per_frame: int = 15
@@ -102,6 +104,7 @@ class SlamSettings:
     joint_init_window_ns: int = 200_000_000
     nis_window: int = 20
     nis_per_dof_max: float = 10.0
+    max_view_angle_rad: float = 1.3963  # 80 degrees
     localise_min_inliers: int = 12
     localise_reprojection_px: float = 2.0
     localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
@@ -248,6 +251,11 @@ class Slam:
         self.names = [v.name for v in vehicles]
         self.state = JointState([(v.name, v.model, v.x0, v.P0) for v in vehicles])
         self.book = LandmarkBook(len(vehicles))
+        # the bound on landmarks in the state grows with the vehicles sharing it
+        self.max_landmarks = min(
+            settings.max_landmarks * len(vehicles),
+            max(settings.max_landmarks_total, settings.max_landmarks),
+        )
         self.runs = {v.name: _VehicleRun(v, i) for i, v in enumerate(vehicles)}
         for r in self.runs.values():
             r.nis_recent = deque(maxlen=settings.nis_window)
@@ -291,8 +299,8 @@ class Slam:
         run.t_ns = t_ns
 
     def _visible(self, vin: VehicleInput, p: F64, euler: F64) -> I64:
-        """Slots of the landmarks in the state predicted in front of the cameras and inside
-        both images."""
+        """Slots of the landmarks in the state predicted in front of the cameras, inside
+        both images, and viewed from within the maximum angle of their viewing direction."""
         m_all = self.state.landmarks()
         if not len(m_all):
             return np.zeros(0, dtype=np.int64)
@@ -301,7 +309,19 @@ class Slam:
         if not len(front):
             return front
         z_pred, _, _ = vin.obs.predict(p, euler, m_all[front])
-        return front[in_view(z_pred, depth[front], vin.features.rig.size_px)]
+        slots = front[in_view(z_pred, depth[front], vin.features.rig.size_px)]
+        views = _view_dirs(vin, p, euler, m_all[slots])
+        return slots[self.book.seen_from(slots, views, np.cos(self.settings.max_view_angle_rad))]
+
+    def _observe(self, run: _VehicleRun, slots: I64, stamp_ns: int) -> I64:
+        """Record that run's vehicle observed the landmarks in `slots` at its current pose;
+        returns their ids."""
+        vin = run.vin
+        p, euler = vin.model.pose(self.state.vehicle_x(vin.name))
+        ids = self.book.slot_ids[slots]
+        views = _view_dirs(vin, p, euler, self.state.landmarks()[slots])
+        self.book.observe(ids, run.index, stamp_ns, views)
+        return ids
 
     def _frame(self, run: _VehicleRun, t_ns: int, f: int) -> None:
         t_start = time.perf_counter()
@@ -485,7 +505,7 @@ class Slam:
         c.type1 = k - c.type2
         loops = seen_before & (absent_ns > s.loop_closure_gap_ns)
         c.loop = int(loops.sum())
-        book.observe(ids, run.index, t_ns)
+        self._observe(run, c.updated_slots, t_ns)
         if c.loop >= s.loop_closure_min_landmarks:
             self._event(t_ns, "loop_closure", vin.name, "", c.loop, absent_ns[loops])
         if c.type2:
@@ -578,7 +598,7 @@ class Slam:
         ids = book.slot_ids[slots]
         c.type2 = k
         others = self._other_observers(ids, run.index)
-        book.observe(ids, run.index, t_ns)
+        self._observe(run, slots, t_ns)
         run.localised_ns = t_ns
         after_s = (t_ns - vin.start_ns) * 1e-9
         self._event(
@@ -666,7 +686,6 @@ class Slam:
         """Initialise up to `want` of the matches `cand` (confirmed candidates, spread over
         the image, the most precise first) as landmarks (inverse model, with covariance and
         cross-covariance from the pose), evicting landmarks when the state is full."""
-        s = self.settings
         st = self.state
         vin = run.vin
         fs = vin.features
@@ -677,16 +696,21 @@ class Slam:
         uv = fs.left_uv_px[fs.match_left[sl]][cand].astype(float)
         pick = cand[spread_order(uv, sig / depth, tuple(fs.rig.size_px[0]))[:want]]
         # room in the state
-        over = st.n_landmarks + len(pick) - s.max_landmarks
+        bound = self.max_landmarks
+        over = st.n_landmarks + len(pick) - bound
         if over > 0:
             slots_all = np.arange(st.n_landmarks)
             covs = st.landmark_covariances(slots_all)
-            order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2))
-            evict = order[: max(over, s.max_landmarks // 10)]  # in batches: fewer copies
+            latest = np.array(
+                [r.stamps[-1] if r.stamps and r is not run else NEVER for r in self.runs.values()],
+                dtype=np.int64,
+            )
+            order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2), latest)
+            evict = order[: max(over, bound // 10)]  # in batches: fewer copies
             self.book.store_estimates(evict, st.landmarks()[evict], covs[evict])
             kept = st.remove_landmarks(evict)
             self.book.keep_slots(kept)
-            pick = pick[: max(0, s.max_landmarks - st.n_landmarks)]
+            pick = pick[: max(0, bound - st.n_landmarks)]
         if len(pick) == 0:
             return 0
         v_idx = st.vehicles[vin.name].index
@@ -707,6 +731,7 @@ class Slam:
             run.index,
             t_ns,
             fs.match_landmark_id[sl][pick],
+            _view_dirs(vin, p, euler, m),
         )
         for other in self.runs.values():
             if other is not run:
@@ -746,7 +771,7 @@ class Slam:
             return
         a = assoc.pred_index
         self._stacked_update(v_idx, pred, a, cand.z[assoc.match_index])
-        self.book.observe(ids[a], other.index, cand.stamp_ns)
+        self._observe(other, slots[front][a], cand.stamp_ns)
         other.candidates = cand.without(assoc.match_index)
         self._event(
             t_ns, "joint_initialisation", run.vin.name, vin.name, k, np.zeros(0, dtype=np.int64)
@@ -834,6 +859,13 @@ class Slam:
         return SlamResult(
             tracks, self.timeline, self.events, lm, self.divergence, self.gamma_raised
         )
+
+
+def _view_dirs(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> F64:
+    """(k, 3) unit vectors from landmarks m (k, 3) to vin's left camera centre at (p, Psi)."""
+    centre = p + euler_zyx_to_matrix(*euler) @ vin.obs.t_body_cam[0]
+    d = centre - np.atleast_2d(m_nav_m)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
 def dead_reckoning_track(vin: VehicleInput) -> VehicleTrack:
