@@ -26,6 +26,20 @@ Cost: P H^T is n x m (only `cols` of P are read), the EKF posterior one n x n x 
 the bound one n x n x l product: O(n^2 (m + l)); with L selecting the vehicle states this
 is O(n^2) in the state size. With S = C C^T (Cholesky), V = P H^T C^-T gives
 K = V C^-1 and P_ekf = P - V V^T.
+
+`ekf_update` and `hinf_update` are the pure reference functions (they return new arrays).
+`ekf_update_inplace` and `hinf_update_inplace` (used by `JointState.update`) evaluate the
+same expressions in the same order on the caller's x and P, writing every n x n product into
+caller-owned work buffers: no n x n array is allocated per update (with the bound on a few
+states). In a fresh process those ~3 MB temporaries (n ~ 600) went back to the OS after each
+update and were faulted in again at the next one (BENCHMARKS.md, "Fuse: speed"). numpy
+evaluates `V @ V.T` and `G.T @ G` with syrk, whose result is exactly symmetric, so the
+in-place NH-infinity update needs no symmetrisation pass. Both variants make the same BLAS
+calls on the same operands as the pure functions and give their results bit for bit here
+(the tests allow 1e-12 of the covariance's scale). The EKF's Joseph form keeps its two
+n x n x m products and its symmetrisation pass (in the two contiguous work buffers, so that
+the state's strided P is read and written once): about twice the NH-infinity update's
+arithmetic.
 """
 
 from __future__ import annotations
@@ -42,7 +56,8 @@ I64 = NDArray[np.int64]
 
 @dataclass(frozen=True, eq=False)
 class UpdateResult:
-    """x (n,), P (n, n); nis: normalised innovation squared; gamma: the bound used;
+    """x (n,), P (n, n) (from the in-place variants: the caller's arrays, updated, so they
+    change with the state); nis: normalised innovation squared; gamma: the bound used;
     gamma_raised: the existence condition failed with the configured gamma."""
 
     x: F64
@@ -114,3 +129,79 @@ def hinf_update(
     G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n)
     P_new = P_ekf + G.T @ G
     return UpdateResult(x_new, 0.5 * (P_new + P_new.T), nis, gamma, raised)
+
+
+def _check_inplace(x: F64, P: F64, work: F64) -> None:
+    n = len(x)
+    if P.shape != (n, n) or work.shape != (2, n, n):
+        raise ValueError(
+            f"in-place update: expected P of shape ({n}, {n}) and work of shape (2, {n}, {n}) "
+            f"for x of length {n}, got {P.shape} and {work.shape}"
+        )
+    if np.may_share_memory(P, work) or np.may_share_memory(x, work):
+        raise ValueError("in-place update: the work buffer must not overlap x or P")
+
+
+def ekf_update_inplace(
+    x: F64, P: F64, y: F64, h: F64, H: F64, R: F64, cols: I64 | None, work: F64
+) -> UpdateResult:
+    """`ekf_update` (Joseph form, same expressions in the same order) written into x (n,)
+    and P (n, n) in place; `work` (2, n, n) is scratch space (two C-contiguous (n, n)
+    buffers) that must not overlap them. The result holds x and P themselves."""
+    _check_inplace(x, P, work)
+    w1, w2 = work[0], work[1]
+    PHt, S, C, V, w, nis = _whitened(P, H, R, y, h, cols)
+    K = solve_triangular(C, V.T, lower=True, trans="T").T  # V C^-1 = P H^T S^-1
+    D = S @ K.T - PHt.T  # (m, n)
+    # P+ = P + K D - (P H^T) K^T, then 0.5 (P+ + P+^T): two n x n x m products
+    np.matmul(K, D, out=w1)
+    np.add(P, w1, out=w1)
+    np.matmul(PHt, K.T, out=w2)
+    np.subtract(w1, w2, out=w1)
+    np.add(w1, w1.T, out=w2)
+    np.multiply(w2, 0.5, out=P)
+    x += V @ w
+    return UpdateResult(x, P, nis)
+
+
+def hinf_update_inplace(
+    x: F64,
+    P: F64,
+    y: F64,
+    h: F64,
+    H: F64,
+    R_hat: F64,
+    gamma: float,
+    bounded: I64 | None,
+    margin: float,
+    cols: I64 | None,
+    work: F64,
+) -> UpdateResult:
+    """`hinf_update` written into x (n,) and P (n, n) in place; `work` (2, n, n) is scratch
+    space (two C-contiguous (n, n) buffers) that must not overlap them. Same expressions in
+    the same order as `hinf_update`: P_ekf = P - V V^T (syrk: exactly symmetric, so no
+    symmetrisation pass) in work[0], the existence check on the bounded block, then
+    P = P_ekf + G^T G (syrk, in work[1]). The result holds x and P themselves."""
+    _check_inplace(x, P, work)
+    P_ekf, GtG = work[0], work[1]
+    _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols)
+    np.matmul(V, V.T, out=P_ekf)
+    np.subtract(P, P_ekf, out=P_ekf)
+    # P_ekf L^T: a view when every state is bounded (no copy), else the l bounded columns
+    idx = None if bounded is None else np.asarray(bounded, dtype=np.int64)
+    P_ekf_L = P_ekf if idx is None else P_ekf[:, idx]
+    P_ekf_LL = P_ekf_L if idx is None else P_ekf_L[idx]
+    P_ekf_LL = 0.5 * (P_ekf_LL + P_ekf_LL.T)
+    lam = float(np.linalg.eigvalsh(P_ekf_LL)[-1])
+    raised = bool(np.isfinite(gamma) and lam >= gamma**2 / (1.0 + margin))
+    if raised:
+        gamma = float(np.sqrt((1.0 + margin) * lam))
+    x += V @ w
+    if not np.isfinite(gamma):
+        P[...] = P_ekf
+        return UpdateResult(x, P, nis, gamma, False)
+    B = np.linalg.cholesky(gamma**2 * np.eye(len(P_ekf_LL)) - P_ekf_LL)
+    G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n), a new array
+    np.matmul(G.T, G, out=GtG)
+    np.add(P_ekf, GtG, out=P)
+    return UpdateResult(x, P, nis, gamma, raised)

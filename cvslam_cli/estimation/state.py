@@ -14,6 +14,11 @@ Vehicle blocks come first and keep their place; landmark j occupies rows
   update costs O(n^2 m) (`filters.py`);
 - adding a landmark appends 3 rows/columns, removing landmarks deletes theirs (Gaussian
   marginalisation).
+
+x and P are views of storage with room to grow (capacity doubles when full). The
+measurement update works on that storage in place (`filters.ekf_update_inplace`,
+`filters.hinf_update_inplace`) with persistent work buffers of the same capacity, so an
+update allocates no n x n array.
 """
 
 from __future__ import annotations
@@ -23,7 +28,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cvslam_cli.estimation.filters import UpdateResult, ekf_update, hinf_update
+from cvslam_cli.estimation.filters import (
+    UpdateResult,
+    ekf_update_inplace,
+    hinf_update_inplace,
+)
 from cvslam_cli.estimation.motion_models import MotionModel
 
 F64 = NDArray[np.float64]
@@ -80,9 +89,15 @@ class JointState:
         self._n = start
         self._x = np.zeros(start + 3 * 64)
         self._P = np.zeros((len(self._x), len(self._x)))
+        # scratch space of the in-place update, 2 capacity^2 entries: the first 2 n^2 as two
+        # contiguous (n, n) arrays (np.empty: pages the filter never uses are never touched)
+        self._work = np.empty(2 * len(self._x) ** 2)
         self.x = np.concatenate([np.asarray(b[2], dtype=float) for b in blocks])
+        # P stays exactly symmetric: every change writes both triangles alike (the in-place
+        # NH-infinity update relies on it and skips the 0.5 (P + P^T) pass)
         for (_, _, _, P0), vb in zip(blocks, self.vehicles.values(), strict=True):
-            self.P[np.ix_(vb.index, vb.index)] = P0
+            P0 = np.asarray(P0, dtype=float)
+            self.P[np.ix_(vb.index, vb.index)] = 0.5 * (P0 + P0.T)
 
     @property
     def x(self) -> F64:
@@ -112,6 +127,11 @@ class JointState:
         x[: self._n] = self.x
         P[: self._n, : self._n] = self.P
         self._x, self._P = x, P
+        self._work = np.empty(2 * new_cap**2)
+
+    def _work_view(self) -> F64:
+        n = self._n
+        return self._work[: 2 * n * n].reshape(2, n, n)
 
     @property
     def n(self) -> int:
@@ -193,12 +213,15 @@ class JointState:
         cols: I64,
         R: F64,
     ) -> UpdateResult:
-        """One measurement update with H (m, len(cols)) touching state columns `cols`."""
+        """One measurement update with H (m, len(cols)) touching state columns `cols`, in
+        place on the state's storage (the result's x and P are the views `self.x`, `self.P`;
+        they equal `filters.ekf_update` / `hinf_update` of the state before the update)."""
+        work = self._work_view()
         if settings.kind == "ekf":
-            res = ekf_update(self.x, self.P, y, h, H, R, cols=cols)
+            res = ekf_update_inplace(self.x, self.P, y, h, H, R, cols, work)
         else:
             bounded = None if settings.bound == "all" else np.arange(self.n_vehicle_states)
-            res = hinf_update(
+            res = hinf_update_inplace(
                 self.x,
                 self.P,
                 y,
@@ -206,12 +229,11 @@ class JointState:
                 H,
                 settings.r_scale * R,
                 self.gamma if self.gamma is not None else settings.gamma,
-                bounded=bounded,
-                margin=settings.gamma_margin,
-                cols=cols,
+                bounded,
+                settings.gamma_margin,
+                cols,
+                work,
             )
-        self.x = res.x
-        self.P = res.P
         if res.gamma_raised:
             # adapt: the raised bound holds from now on, so that a covariance that has
             # outgrown gamma is not inflated again at every update (which runs away)

@@ -11,7 +11,10 @@ the same run (DESIGN.md convention 8: ratios are printed, timings never asserted
    cross-covariance and triangulation covariance, as `cvslam fuse` does) and the vehicle is
    predicted between frames with the INS model; H comes from the stereo observation model for
    m / 4 landmarks spread over the state and touches only the vehicle block and those ones.
-   Growth exponent: slope of a log-log fit of time vs state size n = 15 + 3 L. The O(n^2)
+   `JointState.update` works in place on the state's storage (`filters.*_update_inplace`);
+   the pure reference functions (`ekf_update`, `hinf_update`: new n x n arrays, copied back
+   through the P setter, the code path before the in-place update) are timed in the same
+   run. Growth exponent: slope of a log-log fit of time vs state size n = 15 + 3 L. The O(n^2)
    claim of DESIGN.md section 2 is asserted as a scaling property (exponent < 2.6).
    Also: the same updates with BLAS threads unrestricted vs limited to one (the `fuse` stage
    runs its filter under `threadpool_limits(limits=1, user_api="blas")`).
@@ -25,7 +28,11 @@ the same run (DESIGN.md convention 8: ratios are printed, timings never asserted
    wall seconds (target >= 10x), ms per frame, minor page faults, position RMSE against the
    ground truth; NH-infinity with the map bounds
    (`fuse.map.max_landmarks`, `max_updates_per_frame`) at (200, 40), (150, 30), (100, 20)
-   and the defaults: speed against accuracy; a cProfile of the default (NH-infinity) run.
+   and the defaults: speed against accuracy, EKF and NH-infinity at (200, 40) and (150, 30)
+   each with the in-place update and with the pure reference functions (the same results;
+   the first run in a fresh process is where the allocating path page-faults); the
+   cooperative filter (both UAVs in one state, as `cvslam fuse`) at the same bounds, both
+   filters, in place and pure; a cProfile of the default (NH-infinity) run.
 """
 
 from __future__ import annotations
@@ -51,6 +58,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 from cvslam_cli.config import Config, load_config
 from cvslam_cli.estimation import stage
+from cvslam_cli.estimation.filters import UpdateResult, ekf_update, hinf_update
 from cvslam_cli.estimation.motion import InsNoise
 from cvslam_cli.estimation.motion_models import InitialUncertainty, InsModel, propagate
 from cvslam_cli.estimation.observation import StereoObservationModel
@@ -181,8 +189,31 @@ class Case:
     def update(self, settings: FilterSettings) -> None:
         self.state.update(settings, self.y, self.h, self.H, self.cols, self.R)
 
+    def update_pure(self, settings: FilterSettings) -> None:
+        _pure_update(self.state, settings, self.y, self.h, self.H, self.cols, self.R)
+
     def predict(self) -> None:
         self.state.predict(VEHICLE, self.x_v_new, self.F, self.Q)
+
+
+def _pure_update(
+    st: JointState, settings: FilterSettings, y: F64, h: F64, H: F64, cols: I64, R: F64
+) -> UpdateResult:
+    """`JointState.update` as it was before the in-place update (commit b29bc9e): the pure
+    reference functions, new n x n arrays copied back through the x and P setters."""
+    if settings.kind == "ekf":
+        res = ekf_update(st.x, st.P, y, h, H, R, cols=cols)
+    else:
+        bounded = None if settings.bound == "all" else np.arange(st.n_vehicle_states)
+        gamma = st.gamma if st.gamma is not None else settings.gamma
+        res = hinf_update(
+            st.x, st.P, y, h, H, settings.r_scale * R, gamma, bounded, settings.gamma_margin, cols
+        )
+    st.x = res.x
+    st.P = res.P
+    if res.gamma_raised:
+        st.gamma = res.gamma
+    return res
 
 
 def _build_case(cfg: Config, L: int, obs: StereoObservationModel) -> Case:
@@ -305,6 +336,14 @@ def test_structured_update_matches_dense(cfg: Config, cases: dict[int, Case]) ->
     scale = np.abs(P_d).max()
     assert np.allclose(c.state.x, x_d, rtol=0, atol=1e-9 * np.abs(x_d).max())
     assert np.abs(c.state.P - P_d).max() < 1e-8 * scale
+    for kind in ("ekf", "hinf"):  # in place (JointState.update) == the pure functions
+        c.restore()
+        c.update_pure(_settings(cfg, kind))
+        x_p, P_p = c.state.x.copy(), c.state.P.copy()
+        c.restore()
+        c.update(_settings(cfg, kind))
+        assert np.abs(c.state.P - P_p).max() <= 1e-12 * scale
+        assert np.abs(c.state.x - x_p).max() <= 1e-12 * np.abs(x_p).max()
     c.restore()
     c.predict()
     assert np.abs(c.state.P - _dense_predict(c)).max() < 1e-10 * scale
@@ -315,7 +354,7 @@ def test_update_time_vs_state_size(cfg: Config, cases: dict[int, Case]) -> None:
     ekf = _settings(cfg, "ekf")
     hinf = _settings(cfg, "hinf", "vehicle")
     hinf_all = _settings(cfg, "hinf", "all")
-    names = ("EKF", "NH-inf vehicle", "NH-inf all", "dense EKF")
+    names = ("EKF", "NH-inf vehicle", "NH-inf all", "dense EKF", "EKF pure", "NH-inf pure")
     times: dict[str, list[float]] = {k: [] for k in names}
     ns = [cases[L].n for L in L_VALUES]
     with threadpool_limits(limits=1, user_api="blas"):
@@ -324,6 +363,8 @@ def test_update_time_vs_state_size(cfg: Config, cases: dict[int, Case]) -> None:
             for name, s in (("EKF", ekf), ("NH-inf vehicle", hinf), ("NH-inf all", hinf_all)):
                 times[name].append(_best(partial(c.update, s), c.restore))
             times["dense EKF"].append(_best(partial(_dense_ekf, c), c.restore))
+            times["EKF pure"].append(_best(partial(c.update_pure, ekf), c.restore))
+            times["NH-inf pure"].append(_best(partial(c.update_pure, hinf), c.restore))
             c.restore()
     m = len(cases[L_VALUES[0]].y)
     rows = []
@@ -333,13 +374,17 @@ def test_update_time_vs_state_size(cfg: Config, cases: dict[int, Case]) -> None:
             [str(L), str(ns[i])]
             + [f"{1e3 * times[k][i]:.2f}" for k in names]
             + [f"{d / times['EKF'][i]:.1f}x", f"{d / times['NH-inf vehicle'][i]:.1f}x"]
+            + [f"{times['EKF pure'][i] / times['EKF'][i]:.2f}x"]
+            + [f"{times['NH-inf pure'][i] / times['NH-inf vehicle'][i]:.2f}x"]
         )
     _table(
         f"time per update (ms, best of repeated runs, 1 BLAS thread), m = {m} rows, "
-        "15-state UAV + L landmarks",
-        ["L", "n", *names, "dense/EKF", "dense/NH-inf vehicle"],
+        "15-state UAV + L landmarks; EKF and NH-inf: in place (JointState.update), "
+        "pure: the allocating reference functions (the code path before the in-place update)",
+        ["L", "n", *names, "dense/EKF", "dense/NH-inf vehicle", "pure/in-place EKF",
+         "pure/in-place NH-inf"],
         rows,
-    )
+    )  # fmt: skip
     exps = {k: _exponent(ns, v) for k, v in times.items()}
     big = [i for i, L in enumerate(L_VALUES) if L >= 200]  # past the fixed per-call costs
     exps_big = {k: _exponent([ns[i] for i in big], [v[i] for i in big]) for k, v in times.items()}
@@ -423,8 +468,8 @@ def sim_dir() -> Path:
     fresh = (
         saved.is_file()
         and yaml.safe_load(saved.read_text()) == yaml.safe_load(yaml.safe_dump(dump_scenario(sc)))
-        and (out / "features" / f"{VEHICLE}.npz").is_file()
-        and (out / f"{VEHICLE}.mcap").is_file()
+        and all((out / "features" / f"{v}.npz").is_file() for v in sc.vehicles)
+        and all((out / f"{v}.mcap").is_file() for v in sc.vehicles)
     )
     if fresh:
         print(f"\n[bench] reusing the simulation in {out}")
@@ -449,6 +494,8 @@ class RunSpec:
     blas_one: bool = True
     runs: int = 1
     profile: bool = False
+    pure: bool = False  # the update through the pure reference functions (before in-place)
+    vehicles: tuple[str, ...] = (VEHICLE,)  # more than one: the cooperative filter
 
 
 @dataclass(frozen=True)
@@ -466,7 +513,7 @@ class RunResult:
     p95_ms: float
     mean_n: float
     mean_rows: float
-    rmse_m: float
+    rmse_m: dict[str, float]
     profile: list[tuple[float, float, int, str]]
 
 
@@ -481,11 +528,13 @@ def _function_name(key: tuple[str, int, str]) -> str:
 
 
 def _fresh_run(sim: Path, spec: RunSpec) -> RunResult:
-    """In a fresh process (as `cvslam fuse`): read uav1's inputs, run the filter."""
+    """In a fresh process (as `cvslam fuse`): read the vehicles' inputs, run the filter."""
+    if spec.pure:  # this process only (a fresh one per run)
+        JointState.update = _pure_update  # type: ignore[method-assign,assignment]
     cfg = load_config()
-    fs = load_features(sim / "features" / f"{VEHICLE}.npz")[0]
-    logs = LogSet([McapLogSource(sim / f"{VEHICLE}.mcap")], cfg.logs)
-    inputs, truth = stage.build_inputs(cfg, {VEHICLE: fs}, logs)
+    fs = {v: load_features(sim / "features" / f"{v}.npz")[0] for v in spec.vehicles}
+    logs = LogSet([McapLogSource(sim / f"{v}.mcap") for v in spec.vehicles], cfg.logs)
+    inputs, truth = stage.build_inputs(cfg, fs, logs)
     settings = stage.slam_settings(cfg.fuse, spec.kind)
     settings = replace(
         settings,
@@ -512,18 +561,20 @@ def _fresh_run(sim: Path, spec: RunSpec) -> RunResult:
     assert res is not None
     tl = res.timeline
     ms = np.array([row["ms"] for row in tl])
-    tr = res.tracks[VEHICLE]
-    err = np.linalg.norm(tr.p_nav_m - stage.truth_at(truth[VEHICLE], tr.stamps_ns), axis=1)
-    v = inputs[0]
+    rmse = {}
+    for v in spec.vehicles:
+        tr = res.tracks[v]
+        err = np.linalg.norm(tr.p_nav_m - stage.truth_at(truth[v], tr.stamps_ns), axis=1)
+        rmse[v] = float(np.sqrt(np.nanmean(err**2)))
+    flight_s = max((int(v.features.frame_stamp_ns[-1]) - v.start_ns) * 1e-9 for v in inputs)
     rows: list[tuple[float, float, int, str]] = []
     if prof is not None:
         entries = pstats.Stats(prof).stats  # type: ignore[attr-defined]
         rows = [(e[2], e[3], e[1], _function_name(k)) for k, e in entries.items()]
     return RunResult(
-        walls, cpus, faults, len(tl), (int(v.features.frame_stamp_ns[-1]) - v.start_ns) * 1e-9,
-        float(np.median(ms)), float(np.percentile(ms, 95)),
+        walls, cpus, faults, len(tl), flight_s, float(np.median(ms)), float(np.percentile(ms, 95)),
         float(np.mean([row["state_size"] for row in tl])),
-        float(np.mean([row["nis_dof"] for row in tl])), float(np.sqrt(np.nanmean(err**2))), rows,
+        float(np.mean([row["nis_dof"] for row in tl])), rmse, rows,
     )  # fmt: skip
 
 
@@ -546,7 +597,8 @@ def _run_row(r: RunResult, i: int = 0) -> list[str]:
         str(r.frames), f"{r.flight_s:.1f}", f"{wall:.2f}", f"{rt:.1f}x",
         "met" if rt >= REALTIME_TARGET else "NOT met", f"{cpu:.2f}", f"{r.flight_s / cpu:.1f}x",
         f"{1e3 * wall / r.frames:.1f}", f"{r.median_ms:.1f}", f"{r.p95_ms:.1f}",
-        str(r.page_faults[i]), f"{r.mean_n:.0f}", f"{r.mean_rows:.0f}", f"{r.rmse_m:.2f}",
+        str(r.page_faults[i]), f"{r.mean_n:.0f}", f"{r.mean_rows:.0f}",
+        " / ".join(f"{v:.2f}" for v in r.rmse_m.values()),
     ]  # fmt: skip
 
 
@@ -584,18 +636,58 @@ def test_whole_run_realtime(cfg: Config, sim_dir: Path) -> None:
 
 
 def test_whole_run_map_size(cfg: Config, sim_dir: Path) -> None:
-    """NH-infinity (1 BLAS thread, fresh process) with the map bounds around the defaults."""
+    """Map bounds around the defaults (1 BLAS thread, fresh process): NH-infinity, and at
+    (200, 40) and (150, 30) both filters with the in-place update and with the pure
+    reference functions (the code path before it; same results)."""
     default = (cfg.fuse.map.max_landmarks, cfg.fuse.map.max_updates_per_frame)
+    specs = [RunSpec("hinf", lm, upd) for lm, upd in sorted({(100, 20), default}, reverse=True)]
+    specs = [
+        RunSpec(kind, lm, upd, pure=pure)
+        for lm, upd in ((200, 40), (150, 30))
+        for kind in ("hinf", "ekf")
+        for pure in (False, True)
+    ] + [sp for sp in specs if (sp.max_landmarks, sp.max_updates) not in ((200, 40), (150, 30))]
     rows = []
-    for lm, upd in sorted({(200, 40), (150, 30), (100, 20), default}, reverse=True):
+    for sp in specs:
         load = _load()
-        r = _in_fresh_process(sim_dir, RunSpec("hinf", lm, upd))
-        tag = " (default)" if (lm, upd) == default else ""
-        rows.append([f"{lm}{tag}", str(upd), *_run_row(r), load])
+        r = _in_fresh_process(sim_dir, sp)
+        bounds = (sp.max_landmarks, sp.max_updates)
+        tag = " (default)" if bounds == default else ""
+        rows.append(
+            [f"{sp.max_landmarks}{tag}", str(sp.max_updates),
+             "NH-inf" if sp.kind == "hinf" else "EKF", "pure" if sp.pure else "in place",
+             *_run_row(r), load]
+        )  # fmt: skip
     _table(
-        "whole run, NH-inf, 1 BLAS thread, fresh process: map bounds (fuse.map.max_landmarks, "
-        "max_updates_per_frame) vs speed and accuracy (RMSE of uav1's position)",
-        ["max_landmarks", "max_updates", *RUN_HEAD, "load at start"],
+        "whole run, 1 BLAS thread, fresh process: map bounds (fuse.map.max_landmarks, "
+        "max_updates_per_frame) vs speed and accuracy (RMSE of uav1's position); update in "
+        "place (JointState.update) or through the pure reference functions",
+        ["max_landmarks", "max_updates", "filter", "update", *RUN_HEAD, "load at start"],
+        rows,
+    )
+
+
+def test_whole_run_cooperative(sim_dir: Path) -> None:
+    """Both UAVs in one cooperative filter (as `cvslam fuse`), 1 BLAS thread, fresh process:
+    EKF and NH-infinity at the map bounds (200, 40) and (150, 30), update in place and
+    through the pure reference functions (same results)."""
+    sc = load_scenario(SCENARIO, SIM_SETS)
+    names = tuple(sc.vehicles)
+    rows = []
+    for lm, upd in ((200, 40), (150, 30)):
+        for kind in ("hinf", "ekf"):
+            for pure in (False, True):
+                load = _load()
+                r = _in_fresh_process(sim_dir, RunSpec(kind, lm, upd, pure=pure, vehicles=names))
+                rows.append(
+                    [str(lm), str(upd), "NH-inf" if kind == "hinf" else "EKF",
+                     "pure" if pure else "in place", *_run_row(r), load]
+                )  # fmt: skip
+    _table(
+        f"whole run, cooperative ({' + '.join(names)} in one filter), 1 BLAS thread, fresh "
+        "process: frames counts every vehicle's frames; real time = flight s (the longest "
+        "vehicle's) / wall s; RMSE per vehicle",
+        ["max_landmarks", "max_updates", "filter", "update", *RUN_HEAD, "load at start"],
         rows,
     )
 

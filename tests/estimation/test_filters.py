@@ -1,10 +1,17 @@
-"""EKF and NH-infinity updates: NH-inf -> EKF as gamma -> inf, the Riccati form, existence."""
+"""EKF and NH-infinity updates: NH-inf -> EKF as gamma -> inf, the Riccati form, existence;
+the in-place variants equal the pure functions."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from cvslam_cli.estimation.filters import ekf_update, hinf_update
+from cvslam_cli.estimation.filters import (
+    ekf_update,
+    ekf_update_inplace,
+    hinf_update,
+    hinf_update_inplace,
+)
 
 RNG = np.random.default_rng(5)
 
@@ -109,3 +116,48 @@ def test_joseph_form_equals_the_textbook_joseph_form():
     A = np.eye(len(x)) - K @ H
     np.testing.assert_allclose(res.P, A @ P @ A.T + K @ R @ K.T, atol=1e-10)
     np.testing.assert_allclose(res.x, x + K @ (y - h), atol=1e-10)
+
+
+def _storage(x, P, extra=7):
+    """x and P as views of larger storage (as JointState keeps them) and a work buffer."""
+    n = len(x)
+    xs, Ps = np.zeros(n + extra), np.zeros((n + extra, n + extra))
+    xs[:n], Ps[:n, :n] = x, P
+    return xs[:n], Ps[:n, :n], np.empty(2 * (n + extra) ** 2)[: 2 * n * n].reshape(2, n, n)
+
+
+def test_in_place_updates_equal_the_pure_ones():
+    x, P, y, h, H, R = _problem()
+    cols = np.array([0, 1, 2, 4, 9, 17, 18, 19, 25])
+    Hs = H[:, cols]
+    for c, Hc in ((None, H), (cols, Hs)):
+        ref = ekf_update(x, P, y, h, Hc, R, cols=c)
+        xv, Pv, work = _storage(x, P)
+        res = ekf_update_inplace(xv, Pv, y, h, Hc, R, c, work)
+        assert res.P is Pv and res.x is xv
+        np.testing.assert_allclose(Pv, ref.P, rtol=0, atol=1e-12 * np.abs(ref.P).max())
+        np.testing.assert_allclose(xv, ref.x, rtol=0, atol=1e-12 * np.abs(ref.x).max())
+        assert res.nis == ref.nis
+        for bounded in (np.arange(9), None):
+            for gamma in (4.0, 0.01, np.inf):  # 0.01: the existence condition fails
+                ref = hinf_update(x, P, y, h, Hc, R, gamma, bounded, 0.1, c)
+                xv, Pv, work = _storage(x, P)
+                res = hinf_update_inplace(xv, Pv, y, h, Hc, R, gamma, bounded, 0.1, c, work)
+                np.testing.assert_allclose(Pv, ref.P, rtol=0, atol=1e-12 * np.abs(ref.P).max())
+                np.testing.assert_allclose(xv, ref.x, rtol=0, atol=1e-12 * np.abs(ref.x).max())
+                assert res.nis == ref.nis and res.gamma == ref.gamma
+                assert res.gamma_raised == (gamma == 0.01)
+                np.testing.assert_array_equal(Pv, Pv.T)  # syrk: exactly symmetric
+
+
+def test_in_place_update_rejects_a_work_buffer_that_overlaps_the_state():
+    x, P, y, h, H, R = _problem()
+    xv, Pv, work = _storage(x, P)
+    with pytest.raises(ValueError, match="overlap"):
+        n = len(x)
+        flat = np.empty(2 * n * n)
+        P_in_flat = flat[n * n :].reshape(n, n)
+        P_in_flat[:] = P
+        ekf_update_inplace(xv, P_in_flat, y, h, H, R, None, flat.reshape(2, n, n))
+    with pytest.raises(ValueError, match="shape"):
+        hinf_update_inplace(xv, Pv, y, h, H, R, 4.0, None, 0.1, None, work[0])

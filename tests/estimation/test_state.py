@@ -1,19 +1,22 @@
 """The joint state: structured predict and landmark augmentation/marginalisation equal the
-dense formulas; motion segments; association and spreading."""
+dense formulas; the in-place update equals the pure reference updates; motion segments;
+association and spreading."""
 
 from __future__ import annotations
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from cvslam_cli.estimation.association import (
     LandmarkPrediction,
     associate,
     spread_order,
 )
+from cvslam_cli.estimation.filters import UpdateResult, ekf_update, hinf_update
 from cvslam_cli.estimation.motion import InsNoise
 from cvslam_cli.estimation.motion_models import InsModel, OdometryModel
 from cvslam_cli.estimation.slam import motion_segments
-from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.state import FilterSettings, JointState
 
 RNG = np.random.default_rng(11)
 
@@ -75,6 +78,89 @@ def test_removing_landmarks_is_marginalisation_and_storage_grows():
         st.add_landmarks(np.zeros((3, 3)), np.eye(9), np.zeros((9, n)))
     assert st.n_landmarks == 123 and st.P.shape == (st.n, st.n)
     np.testing.assert_array_equal(st.P[:18, :18], P0[:18, :18])
+
+
+def _reference(st: JointState, s: FilterSettings, y, h, H, cols, R) -> UpdateResult:
+    """The pure update of the state as it is now (with the bound the state carries)."""
+    x, P = st.x.copy(), st.P.copy()
+    if s.kind == "ekf":
+        return ekf_update(x, P, y, h, H, R, cols=cols)
+    bounded = None if s.bound == "all" else np.arange(st.n_vehicle_states)
+    gamma = st.gamma if st.gamma is not None else s.gamma
+    return hinf_update(x, P, y, h, H, s.r_scale * R, gamma, bounded, s.gamma_margin, cols)
+
+
+# (settings, whether gamma gets raised in the sequence below)
+SETTINGS = [
+    (FilterSettings(kind="ekf"), False),
+    (FilterSettings(kind="hinf", gamma=10.0, bound="vehicle"), False),
+    (FilterSettings(kind="hinf", gamma=10.0, bound="all", c_v=1.5), True),  # landmarks outgrow it
+    (FilterSettings(kind="hinf", gamma=0.05, bound="vehicle"), True),  # at the first update
+    (FilterSettings(kind="hinf", gamma=0.05, bound="all"), True),
+    (FilterSettings(kind="hinf", gamma=np.inf, bound="vehicle"), False),  # the EKF posterior
+]
+
+
+def test_in_place_update_equals_the_pure_update_while_the_state_grows_and_shrinks():
+    """JointState.update works on its own storage; over a sequence of predicts, updates of
+    one vehicle and a few landmarks (a `cols` subset), landmarks added past the storage's
+    capacity (it reallocates) and removed, it gives the pure `ekf_update` / `hinf_update`
+    result of the state before each update, to 1e-12 of the covariance's scale (in
+    practice bit for bit), keeps P exactly symmetric and positive definite, and persists
+    a raised gamma exactly as before. One BLAS thread, as the fuse stage runs the filter."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        for s, raises in SETTINGS:
+            _in_place_sequence(s, raises)
+
+
+def _in_place_sequence(s: FilterSettings, raises: bool) -> None:
+    rng = np.random.default_rng(23)
+
+    def spd(n: int) -> np.ndarray:
+        A = rng.normal(size=(n, n))
+        return A @ A.T / n + 0.1 * np.eye(n)
+
+    ins = InsModel(InsNoise(2e-3, 1.7e-4, 3e-3, 2e-5), biases=True)
+    odo = OdometryModel(0.05, 0.01, z_nav_m=0.0)
+    st = JointState(
+        [("a", ins, rng.normal(size=15), spd(15)), ("b", odo, rng.normal(size=3), spd(3))]
+    )
+    raised_seen = 0
+    for step in range(40):
+        if step % 4 == 0:  # grow: 12 landmarks correlated with the state
+            k, n = 12, st.n
+            J = 0.3 * rng.normal(size=(3 * k, n))
+            st.add_landmarks(rng.normal(size=(k, 3)), J @ st.P @ J.T + spd(3 * k), J @ st.P)
+        if step % 7 == 6:  # shrink
+            st.remove_landmarks(rng.choice(st.n_landmarks, size=5, replace=False))
+        vname = "a" if step % 2 else "b"
+        vb = st.vehicles[vname]
+        F = np.eye(vb.model.n) + 0.05 * rng.normal(size=(vb.model.n, vb.model.n))
+        st.predict(vname, st.vehicle_x(vname) + 0.1, F, 0.01 * spd(vb.model.n))
+        slots = np.sort(rng.choice(st.n_landmarks, size=4, replace=False))
+        cols = np.concatenate([vb.index, st.landmark_index(slots).ravel()])
+        m = 8
+        H = rng.normal(size=(m, len(cols)))
+        R = np.diag(rng.uniform(0.5, 2.0, m))
+        y, h = rng.normal(size=m), rng.normal(size=m)
+        ref = _reference(st, s, y, h, H, cols, R)
+        gamma_before = st.gamma
+        res = st.update(s, y, h, H, cols, R)
+        scale = np.abs(ref.P).max()
+        np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(st.x, ref.x, rtol=0, atol=1e-12 * np.abs(ref.x).max())
+        assert res.nis == ref.nis
+        assert res.gamma == ref.gamma and res.gamma_raised == ref.gamma_raised
+        assert st.gamma == (res.gamma if res.gamma_raised else gamma_before)
+        assert np.shares_memory(res.P, st.P) and np.shares_memory(res.x, st.x)
+        np.testing.assert_array_equal(st.P, st.P.T)
+        assert np.linalg.eigvalsh(st.P)[0] > 0
+        raised_seen += res.gamma_raised
+    assert st.n_landmarks > 64  # grew past the initial storage
+    if raises:
+        assert raised_seen >= 1 and st.gamma is not None and st.gamma > s.gamma
+    else:
+        assert raised_seen == 0 and st.gamma is None
 
 
 def test_motion_segments_hold_each_sample_until_the_next():
