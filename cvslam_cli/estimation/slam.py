@@ -302,14 +302,7 @@ class Slam:
         """Slots of the landmarks in the state predicted in front of the cameras, inside
         both images, and viewed from within the maximum angle of their viewing direction."""
         m_all = self.state.landmarks()
-        if not len(m_all):
-            return np.zeros(0, dtype=np.int64)
-        depth = camera_depths(vin.obs, p, euler, m_all)
-        front = np.flatnonzero(depth > 0)
-        if not len(front):
-            return front
-        z_pred, _, _ = vin.obs.predict(p, euler, m_all[front])
-        slots = front[in_view(z_pred, depth[front], vin.features.rig.size_px)]
+        slots = _in_view(vin, p, euler, m_all)
         views = _view_dirs(vin, p, euler, m_all[slots])
         return slots[self.book.seen_from(slots, views, np.cos(self.settings.max_view_angle_rad))]
 
@@ -542,7 +535,13 @@ class Slam:
         H = np.concatenate([pred.H_v[rows].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1)
         cols = np.concatenate([v_idx, self.state.landmark_index(pred.slots[rows]).reshape(-1)])
         R = np.kron(np.eye(k), np.eye(4) * s.pixel_sigma_px**2)
-        res = self.state.update(s.filter, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R)
+        # NH-infinity's bound is on the vehicles whose pose is known (a vehicle still being
+        # localised has a prior far wider than gamma: bounding it would inflate it at every
+        # other vehicle's update)
+        known = [n for n, r in self.runs.items() if r.localised_ns is not None]
+        res = self.state.update(
+            s.filter, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R, vehicles=known
+        )
         self.gamma_raised += int(res.gamma_raised)
         return res
 
@@ -583,8 +582,8 @@ class Slam:
         if d2 > s.localise_prior_chi2:
             c.rejected = len(found.match_rows)
             return
-        euler = found.euler_rad.copy()  # angles continuous with the state's
-        euler = euler_prior + (euler - euler_prior + np.pi) % (2 * np.pi) - np.pi
+        # angles continuous with the state's (which are not wrapped)
+        euler = euler_prior + (found.euler_rad - euler_prior + np.pi) % (2 * np.pi) - np.pi
         st.x[v_idx] = vin.model.with_pose(x_v, found.p_nav_m, euler)
         slots = found.landmark_rows
         pred, _, _ = self._predict_slots(vin, slots)
@@ -643,8 +642,7 @@ class Slam:
         vin = run.vin
         x_v = self.state.vehicle_x(vin.name)
         p, euler = vin.model.pose(x_v)
-        depth = camera_depths(vin.obs, p, euler, m_c)
-        ok = np.flatnonzero(depth > 0)
+        ok = _in_view(vin, p, euler, m_c)
         if len(ok) == 0:
             return np.zeros(0, dtype=np.int64)
         z, _, H_m = vin.obs.predict(p, euler, m_c[ok])
@@ -755,9 +753,7 @@ class Slam:
         v_idx = st.vehicles[vin.name].index
         x_v = st.x[v_idx]
         p, euler = vin.model.pose(x_v)
-        m_new = st.landmarks()[slots]
-        depth = camera_depths(vin.obs, p, euler, m_new)
-        front = np.flatnonzero(depth > 0)
+        front = _in_view(vin, p, euler, st.landmarks()[slots])
         if not len(front):
             return
         pred, _, _ = self._predict_slots(vin, slots[front])
@@ -859,6 +855,20 @@ class Slam:
         return SlamResult(
             tracks, self.timeline, self.events, lm, self.divergence, self.gamma_raised
         )
+
+
+def _in_view(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> I64:
+    """Rows of landmarks m (k, 3) predicted in front of vin's cameras at (p, Psi) and inside
+    both images (a point near the camera plane projects far outside: its Jacobian would
+    blow up the innovation covariance)."""
+    if not len(m_nav_m):
+        return np.zeros(0, dtype=np.int64)
+    depth = camera_depths(vin.obs, p, euler, m_nav_m)
+    front = np.flatnonzero(depth > 0)
+    if not len(front):
+        return front
+    z_pred, _, _ = vin.obs.predict(p, euler, m_nav_m[front])
+    return front[in_view(z_pred, depth[front], vin.features.rig.size_px)]
 
 
 def _view_dirs(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> F64:

@@ -23,6 +23,7 @@ update allocates no n x n array.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -212,15 +213,24 @@ class JointState:
         H: F64,
         cols: I64,
         R: F64,
+        vehicles: Sequence[str] | None = None,
     ) -> UpdateResult:
         """One measurement update with H (m, len(cols)) touching state columns `cols`, in
         place on the state's storage (the result's x and P are the views `self.x`, `self.P`;
-        they equal `filters.ekf_update` / `hinf_update` of the state before the update)."""
+        they equal `filters.ekf_update` / `hinf_update` of the state before the update).
+        NH-infinity with bound "vehicle": the bound is on the states of `vehicles` (None:
+        every vehicle)."""
         work = self._work_view()
-        if settings.kind == "ekf":
-            res = ekf_update_inplace(self.x, self.P, y, h, H, R, cols, work)
+        bounded: I64 | None = None  # bound "all"
+        if settings.bound != "all":
+            names = list(self.vehicles) if vehicles is None else list(vehicles)
+            bounded = np.concatenate(
+                [self.vehicles[v].index for v in names] or [np.zeros(0, dtype=np.int64)]
+            )
+        if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
+            # (NH-infinity bounding no state is the EKF with R_hat; r_scale is 1 for the EKF)
+            res = ekf_update_inplace(self.x, self.P, y, h, H, settings.r_scale * R, cols, work)
         else:
-            bounded = None if settings.bound == "all" else np.arange(self.n_vehicle_states)
             res = hinf_update_inplace(
                 self.x,
                 self.P,
