@@ -236,6 +236,7 @@ class MapConfig:
     """Landmarks in the filter state and their management."""
 
     max_landmarks: int = opt(150, lo=1)
+    landmarks_per_added_vehicle: int = opt(100, lo=0)
     max_landmarks_total: int = opt(400, lo=1)
     max_updates_per_frame: int = opt(30, lo=1)
     target_tracked: int = opt(30, lo=0)

@@ -3,9 +3,9 @@
 Each landmark has a global id (in order of creation) and keeps, whether it is in the state
 or not: its descriptor (from the frame that created it), which vehicles observed it (a
 bitmask), how often, when it was first and last seen (per vehicle), and its estimate. The
-state holds at most `max_landmarks` per vehicle (up to `max_landmarks_total`); when a frame
-needs room, landmarks are evicted (marginalised out, `JointState.remove_landmarks`) and keep
-their last estimate in the output map.
+state holds at most `slam.landmark_bound`; when a frame needs room, landmarks are evicted
+(marginalised out, `JointState.remove_landmarks`) and keep their last estimate in the output
+map.
 
 Eviction rule (keep what is most useful for later re-observation): landmarks observed in the
 current frame are never evicted, and those observed or created in another vehicle's latest

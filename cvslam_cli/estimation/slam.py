@@ -18,7 +18,7 @@ ground station would. For a frame of vehicle v at time t:
 4. map: when fewer than `target_tracked` landmarks were updated, new ones are initialised
    from the frame's triangulated points with the inverse model and their covariance and
    cross-covariance from the pose (standard SLAM augmentation); the state is kept under
-   `max_landmarks` per vehicle (up to `max_landmarks_total`) by eviction (`mapping.py`);
+   `landmark_bound` by eviction (`mapping.py`);
 5. record: pose and its covariance, one timeline row, events (loop closure: a type-1
    re-observation after more than `loop_closure_gap_s`; type 2; divergence).
 
@@ -92,7 +92,8 @@ class SlamSettings:
     consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
     descriptor_ratio: float = 0.8
     max_descriptor_distance: float = 350.0
-    max_landmarks: int = 150  # per vehicle in the filter ...
+    max_landmarks: int = 150  # with one vehicle in the filter ...
+    landmarks_per_added_vehicle: int = 100  # ... plus this many per other vehicle ...
     max_landmarks_total: int = 400  # ... up to this many in all
     max_updates_per_frame: int = 30
     target_tracked: int = 30
@@ -156,6 +157,16 @@ class SlamResult:
     landmarks: SlamMap
     divergence: Divergence | None
     gamma_raised: int
+
+
+def landmark_bound(s: SlamSettings, n_vehicles: int) -> int:
+    """Landmarks the state holds at most with n vehicles: `max_landmarks` for the first
+    vehicle, `landmarks_per_added_vehicle` for each other, up to `max_landmarks_total`. Each
+    vehicle needs room for the landmarks it tracks; the older map, kept for loop closures
+    and re-observations, is shared (measured: 2 UAVs at 125 each are as accurate as at 150
+    each, one UAV loses 12 % at 125; BENCHMARKS.md, "Fuse: cooperative")."""
+    grown = s.max_landmarks + (n_vehicles - 1) * s.landmarks_per_added_vehicle
+    return min(grown, max(s.max_landmarks_total, s.max_landmarks))
 
 
 def motion_segments(stamps_ns: I64, inputs: F64, t0_ns: int, t1_ns: int) -> tuple[F64, F64]:
@@ -252,10 +263,7 @@ class Slam:
         self.state = JointState([(v.name, v.model, v.x0, v.P0) for v in vehicles])
         self.book = LandmarkBook(len(vehicles))
         # the bound on landmarks in the state grows with the vehicles sharing it
-        self.max_landmarks = min(
-            settings.max_landmarks * len(vehicles),
-            max(settings.max_landmarks_total, settings.max_landmarks),
-        )
+        self.max_landmarks = landmark_bound(settings, len(vehicles))
         self.runs = {v.name: _VehicleRun(v, i) for i, v in enumerate(vehicles)}
         for r in self.runs.values():
             r.nis_recent = deque(maxlen=settings.nis_window)

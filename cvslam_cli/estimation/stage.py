@@ -351,6 +351,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         descriptor_ratio=a.descriptor_ratio,
         max_descriptor_distance=a.max_descriptor_distance,
         max_landmarks=m.max_landmarks,
+        landmarks_per_added_vehicle=m.landmarks_per_added_vehicle,
         max_landmarks_total=m.max_landmarks_total,
         max_updates_per_frame=m.max_updates_per_frame,
         target_tracked=m.target_tracked,

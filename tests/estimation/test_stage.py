@@ -97,7 +97,7 @@ def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cv
     assert set(tl.vehicle) == {"uav1", "uav2"}
     assert tl.stamp_ns.is_monotonic_increasing
     assert (tl.type1 > 0).mean() > 0.9 and tl.type3.sum() > 0
-    assert (tl.landmarks_in_state <= 2 * 150).all()  # fuse.map.max_landmarks per vehicle
+    assert (tl.landmarks_in_state <= 150 + 100).all()  # fuse.map: 2 vehicles
     mp = read_map_csv(out / "map.csv")
     assert len(mp) == tl.landmarks_mapped.iloc[-1]
     assert mp.in_state.sum() == tl.landmarks_in_state.iloc[-1]
