@@ -44,7 +44,7 @@ import pstats
 import resource
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from functools import partial
@@ -197,14 +197,27 @@ class Case:
 
 
 def _pure_update(
-    st: JointState, settings: FilterSettings, y: F64, h: F64, H: F64, cols: I64, R: F64
+    st: JointState,
+    settings: FilterSettings,
+    y: F64,
+    h: F64,
+    H: F64,
+    cols: I64,
+    R: F64,
+    vehicles: Sequence[str] | None = None,
 ) -> UpdateResult:
-    """`JointState.update` as it was before the in-place update (commit b29bc9e): the pure
-    reference functions, new n x n arrays copied back through the x and P setters."""
-    if settings.kind == "ekf":
-        res = ekf_update(st.x, st.P, y, h, H, R, cols=cols)
+    """`JointState.update` through the pure reference functions (the code path before the
+    in-place update, commit b29bc9e): new n x n arrays copied back through the x and P
+    setters; the same choice of filter and bounded states as `JointState.update`."""
+    bounded: I64 | None = None  # bound "all"
+    if settings.bound != "all":
+        names = list(st.vehicles) if vehicles is None else list(vehicles)
+        bounded = np.concatenate(
+            [st.vehicles[v].index for v in names] or [np.zeros(0, dtype=np.int64)]
+        )
+    if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
+        res = ekf_update(st.x, st.P, y, h, H, settings.r_scale * R, cols=cols)
     else:
-        bounded = None if settings.bound == "all" else np.arange(st.n_vehicle_states)
         gamma = st.gamma if st.gamma is not None else settings.gamma
         res = hinf_update(
             st.x, st.P, y, h, H, settings.r_scale * R, gamma, bounded, settings.gamma_margin, cols
