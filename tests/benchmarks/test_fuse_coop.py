@@ -470,7 +470,8 @@ def _print_bounds(teams: dict[int, Team], cfg: Config) -> None:
             if not runs:
                 continue
             label = (
-                f"{b} (default: {m.max_landmarks}/vehicle, <= {m.max_landmarks_total})"
+                f"{b} (default: {m.max_landmarks} + {m.landmarks_per_added_vehicle} per added "
+                f"vehicle, <= {m.max_landmarks_total})"
                 if b == default
                 else str(b)
             )
