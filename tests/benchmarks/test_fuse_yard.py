@@ -11,7 +11,7 @@ Per seed and robot: position RMSE and final error (cooperative, single, dead rec
 loop closures, type-2 observations and the events. Asserted: no divergence; every robot's
 RMSE at most half of dead reckoning's (the yard is small: odometry drifts only 4-5 m RMSE),
 in both modes; cooperative RMSE not above single (1.05x) for each robot, on each seed
-(measured at commit 0f62f82, seed 2: robot1 0.94 vs 1.24 m, robot2 0.17 vs 0.78 m; dead
+(measured at commit 067179b, seed 2: robot1 0.75 vs 1.24 m, robot2 0.16 vs 0.78 m; dead
 reckoning 4.48 and 5.22 m).
 
 Environment: CVSLAM_YARD_SEEDS (default "2", the scenario's own seed; each seed takes about
