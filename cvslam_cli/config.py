@@ -190,6 +190,16 @@ class MotionConfig:
 
 
 @dataclass(frozen=True)
+class KnownPoseConfig:
+    """A vehicle's initial pose given in the config (nav frame NED, m; ZYX Euler angles,
+    rad; nav-frame velocity, m/s), used instead of `source` for that vehicle."""
+
+    position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    euler_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    velocity_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
 class UnknownPoseConfig:
     """A vehicle whose initial pose is unknown: it starts from a rough prior, the `source`
     pose moved by `offset_m` (nav frame) and turned by `yaw_offset_rad`, with standard
@@ -214,6 +224,7 @@ class InitialConfig:
     angular_rate_sigma_rad_s: float = opt(0.05, lo=0.0, lo_open=True)
     accel_bias_sigma_m_s2: float = opt(0.05, lo=0.0, lo_open=True)
     gyro_bias_sigma_rad_s: float = opt(2.0e-3, lo=0.0, lo_open=True)
+    poses: dict[str, KnownPoseConfig] = opt({})
     unknown: dict[str, UnknownPoseConfig] = opt({})
     localise_min_inliers: int = opt(12, lo=4)
     localise_reprojection_px: float = opt(2.0, lo=0.0, lo_open=True)

@@ -268,6 +268,13 @@ def _initial_pose(
     return int(gt.stamps_ns[i]), gt.p_m[i].copy(), euler, v_nav, w_body
 
 
+def initial_pose_source(cfg: FuseConfig, vehicle: str) -> str:
+    """Where a vehicle's initial pose came from, for the run's metadata."""
+    init = cfg.initial
+    source = "config" if vehicle in init.poses else init.source
+    return f"unknown (rough prior from {source})" if vehicle in init.unknown else source
+
+
 def build_inputs(
     cfg: Config, features: dict[str, FeatureSet], logs: LogSet
 ) -> tuple[list[VehicleInput], dict[str, PoseTable]]:
@@ -282,12 +289,13 @@ def build_inputs(
         init.accel_bias_sigma_m_s2,
         init.gyro_bias_sigma_rad_s,
     )
-    unknown_names = sorted(set(init.unknown) - set(vehicles))
-    if unknown_names:
-        raise CvslamError(
-            f"fuse.initial.unknown: no vehicle {', '.join(unknown_names)} in this run "
-            f"(vehicles: {', '.join(vehicles)})"
-        )
+    for key, table in (("poses", init.poses), ("unknown", init.unknown)):
+        missing = sorted(set(table) - set(vehicles))
+        if missing:
+            raise CvslamError(
+                f"fuse.initial.{key}: no vehicle {', '.join(missing)} in this run "
+                f"(vehicles: {', '.join(vehicles)})"
+            )
     inputs = []
     for v in vehicles:
         fs = features[v]
@@ -304,9 +312,15 @@ def build_inputs(
         else:
             st, U = np.zeros(0, dtype=np.int64), np.zeros((0, 0))
         first_motion = int(st[0]) if len(st) else int(fs.frame_stamp_ns[0])
-        start, p0, e0, v0, w0 = _initial_pose(
-            cfg.fuse, v, gt, int(fs.frame_stamp_ns[0]), first_motion
-        )
+        given = init.poses.get(v)
+        if given is not None:
+            start = max(int(fs.frame_stamp_ns[0]), first_motion)
+            p0, e0 = np.array(given.position_m), np.array(given.euler_rad)
+            v0, w0 = np.array(given.velocity_m_s), np.zeros(3)
+        else:
+            start, p0, e0, v0, w0 = _initial_pose(
+                cfg.fuse, v, gt, int(fs.frame_stamp_ns[0]), first_motion
+            )
         prior = init.unknown.get(v)
         if prior is not None:  # a rough prior only: moved, turned, and wide
             turn = euler_zyx_to_matrix(0.0, 0.0, prior.yaw_offset_rad)
@@ -576,7 +590,7 @@ def run(
             "landmarks": summary.landmarks,
             "realtime_factor": round(float(summary.realtime_factor), 2),
             "gamma_raised": res.gamma_raised,
-            "initial_pose": cfg.fuse.initial.source,
+            "initial_pose": {v.name: initial_pose_source(cfg.fuse, v.name) for v in inputs},
         },
         wall,
     )

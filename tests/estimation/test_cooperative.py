@@ -136,6 +136,10 @@ def test_a_vehicle_with_unknown_initial_pose_is_localised_in_the_shared_map(
     assert r.code == 0, r.err
     assert "uav2: localised in the map" in r.err
     s = _summary(run, "fuse")["vehicles"]
+    assert _summary(run, "fuse")["initial_pose"] == {
+        "uav1": "ground_truth",
+        "uav2": "unknown (rough prior from ground_truth)",
+    }
     assert s["uav1"]["localised_after_s"] == 0.0
     after_s = s["uav2"]["localised_after_s"]
     events = pd.read_csv(run / "fuse" / "events.csv")

@@ -15,6 +15,7 @@ from threadpoolctl import threadpool_limits
 from cvslam_cli.config import load_config
 from cvslam_cli.estimation import stage
 from cvslam_cli.estimation.slam import Slam, dead_reckoning_track
+from cvslam_cli.geometry.rotations import matrix_to_euler_zyx, quat_xyzw_to_matrix
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
 from cvslam_cli.io.logs import LogSet
@@ -108,6 +109,40 @@ def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cv
     # another config is refused without --force
     r = cvslam("fuse", run, *NOISE, "--set", "fuse.map.max_landmarks=100")
     assert r.code == 1 and "different config" in r.err
+
+
+def _yaml_list(values) -> str:
+    return "[" + ", ".join(f"{x:.9f}" for x in values) + "]"
+
+
+def test_initial_poses_from_the_config_replace_the_ground_truth(sim_run, tmp_path, cvslam):
+    """Logs without ground truth: each vehicle's initial pose given in fuse.initial.poses
+    (here the truth's first pose, velocity from its first two samples) gives the same
+    accuracy as the log's ground truth, and the run's metadata says where it came from."""
+    run = _copy(sim_run, tmp_path)
+    poses = []
+    for v in ("uav1", "uav2"):
+        truth = read_tum(run / "truth" / f"{v}.tum")
+        stamps = load_features(run / "features" / f"{v}.npz")[0].frame_stamp_ns
+        i = int(np.searchsorted(truth.stamps_ns, stamps[0]))
+        euler = matrix_to_euler_zyx(quat_xyzw_to_matrix(truth.q_xyzw[i]))
+        vel = (truth.p_m[i + 1] - truth.p_m[i]) / (
+            (truth.stamps_ns[i + 1] - truth.stamps_ns[i]) * 1e-9
+        )
+        poses.append(
+            f"{v}: {{position_m: {_yaml_list(truth.p_m[i])}, "
+            f"euler_rad: {_yaml_list(euler)}, velocity_m_s: {_yaml_list(vel)}}}"
+        )
+    r = cvslam("fuse", run, *NOISE, "--set", "fuse.initial.source=origin",
+               "--set", "fuse.initial.poses={" + ", ".join(poses) + "}")  # fmt: skip
+    assert r.code == 0, r.err
+    summary = yaml.safe_load((run / "run.yaml").read_text())["stages"]["fuse"]["summary"]
+    assert summary["initial_pose"] == {"uav1": "config", "uav2": "config"}
+    for v in ("uav1", "uav2"):
+        s = summary["vehicles"][v]
+        assert s["final_error_m"] < 0.25 * s["final_error_deadreckoning_m"], s
+    r = cvslam("fuse", run, "--force", "--set", "fuse.initial.poses={uav7: {}}")
+    assert r.code == 1 and "fuse.initial.poses: no vehicle uav7" in r.err
 
 
 def test_single_and_ekf_runs_go_to_their_own_folders(sim_run, tmp_path, cvslam):
