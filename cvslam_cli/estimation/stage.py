@@ -303,7 +303,11 @@ def build_inputs(
         if fs.n_frames == 0:
             raise CvslamError(f"vehicle {v}: the feature file has no frames")
         gt = mo.gt
-        z0 = float(gt.p_m[0, 2]) if len(gt) else 0.0
+        given = init.poses.get(v)
+        if given is not None:  # the ground robot's (constant) height, as its other states
+            z0 = float(given.position_m[2])
+        else:
+            z0 = float(gt.p_m[0, 2]) if len(gt) else 0.0
         model = _model(cfg.fuse, v, mo, z0)
         if model.kind == "ins":
             st, U = mo.imu_stamps, mo.imu
@@ -312,7 +316,6 @@ def build_inputs(
         else:
             st, U = np.zeros(0, dtype=np.int64), np.zeros((0, 0))
         first_motion = int(st[0]) if len(st) else int(fs.frame_stamp_ns[0])
-        given = init.poses.get(v)
         if given is not None:
             start = max(int(fs.frame_stamp_ns[0]), first_motion)
             p0, e0 = np.array(given.position_m), np.array(given.euler_rad)
