@@ -98,6 +98,16 @@ def ekf_update(
     return UpdateResult(x + V @ w, 0.5 * (P_new + P_new.T), nis)
 
 
+def _existence_check(P_ekf_LL: F64, gamma: float, margin: float) -> tuple[float, bool]:
+    """(gamma to use, whether it was raised): the bound exists while the largest eigenvalue
+    of L P_ekf L^T (l, l) is below gamma^2 / (1 + margin); else gamma^2 is raised to
+    (1 + margin) lambda_max (module docstring)."""
+    lam = float(np.linalg.eigvalsh(P_ekf_LL)[-1])
+    if np.isfinite(gamma) and lam >= gamma**2 / (1.0 + margin):
+        return float(np.sqrt((1.0 + margin) * lam)), True
+    return gamma, False
+
+
 def hinf_update(
     x: F64,
     P: F64,
@@ -118,10 +128,7 @@ def hinf_update(
     P_ekf = P - V @ V.T
     P_ekf_L = P_ekf[:, idx]  # P_ekf L^T, (n, l)
     P_ekf_LL = 0.5 * (P_ekf_L[idx] + P_ekf_L[idx].T)
-    lam = float(np.linalg.eigvalsh(P_ekf_LL)[-1])
-    raised = bool(np.isfinite(gamma) and lam >= gamma**2 / (1.0 + margin))
-    if raised:
-        gamma = float(np.sqrt((1.0 + margin) * lam))
+    gamma, raised = _existence_check(P_ekf_LL, gamma, margin)
     x_new = x + V @ w
     if not np.isfinite(gamma):
         return UpdateResult(x_new, 0.5 * (P_ekf + P_ekf.T), nis, gamma, False)
@@ -192,10 +199,7 @@ def hinf_update_inplace(
     P_ekf_L = P_ekf if idx is None else P_ekf[:, idx]
     P_ekf_LL = P_ekf_L if idx is None else P_ekf_L[idx]
     P_ekf_LL = 0.5 * (P_ekf_LL + P_ekf_LL.T)
-    lam = float(np.linalg.eigvalsh(P_ekf_LL)[-1])
-    raised = bool(np.isfinite(gamma) and lam >= gamma**2 / (1.0 + margin))
-    if raised:
-        gamma = float(np.sqrt((1.0 + margin) * lam))
+    gamma, raised = _existence_check(P_ekf_LL, gamma, margin)
     x += V @ w
     if not np.isfinite(gamma):
         P[...] = P_ekf

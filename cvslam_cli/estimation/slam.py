@@ -314,15 +314,12 @@ class Slam:
         views = _view_dirs(vin, p, euler, m_all[slots])
         return slots[self.book.seen_from(slots, views, np.cos(self.settings.max_view_angle_rad))]
 
-    def _observe(self, run: _VehicleRun, slots: I64, stamp_ns: int) -> I64:
-        """Record that run's vehicle observed the landmarks in `slots` at its current pose;
-        returns their ids."""
+    def _observe(self, run: _VehicleRun, slots: I64, stamp_ns: int) -> None:
+        """Record that run's vehicle observed the landmarks in `slots` at its current pose."""
         vin = run.vin
         p, euler = vin.model.pose(self.state.vehicle_x(vin.name))
-        ids = self.book.slot_ids[slots]
         views = _view_dirs(vin, p, euler, self.state.landmarks()[slots])
-        self.book.observe(ids, run.index, stamp_ns, views)
-        return ids
+        self.book.observe(self.book.slot_ids[slots], run.index, stamp_ns, views)
 
     def _frame(self, run: _VehicleRun, t_ns: int, f: int) -> None:
         t_start = time.perf_counter()

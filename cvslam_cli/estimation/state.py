@@ -205,6 +205,18 @@ class JointState:
         self.x, self.P = x, P
         return kept
 
+    def bounded_states(
+        self, settings: FilterSettings, vehicles: Sequence[str] | None = None
+    ) -> I64 | None:
+        """State indices NH-infinity's bound is put on: None for bound "all", else the
+        states of `vehicles` (None: every vehicle; possibly none)."""
+        if settings.bound == "all":
+            return None
+        names = list(self.vehicles) if vehicles is None else list(vehicles)
+        return np.concatenate(
+            [self.vehicles[v].index for v in names] or [np.zeros(0, dtype=np.int64)]
+        )
+
     def update(
         self,
         settings: FilterSettings,
@@ -221,12 +233,7 @@ class JointState:
         NH-infinity with bound "vehicle": the bound is on the states of `vehicles` (None:
         every vehicle)."""
         work = self._work_view()
-        bounded: I64 | None = None  # bound "all"
-        if settings.bound != "all":
-            names = list(self.vehicles) if vehicles is None else list(vehicles)
-            bounded = np.concatenate(
-                [self.vehicles[v].index for v in names] or [np.zeros(0, dtype=np.int64)]
-            )
+        bounded = self.bounded_states(settings, vehicles)
         if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
             # (NH-infinity bounding no state is the EKF with R_hat; r_scale is 1 for the EKF)
             res = ekf_update_inplace(self.x, self.P, y, h, H, settings.r_scale * R, cols, work)

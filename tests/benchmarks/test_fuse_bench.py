@@ -209,12 +209,7 @@ def _pure_update(
     """`JointState.update` through the pure reference functions (the code path before the
     in-place update, commit b29bc9e): new n x n arrays copied back through the x and P
     setters; the same choice of filter and bounded states as `JointState.update`."""
-    bounded: I64 | None = None  # bound "all"
-    if settings.bound != "all":
-        names = list(st.vehicles) if vehicles is None else list(vehicles)
-        bounded = np.concatenate(
-            [st.vehicles[v].index for v in names] or [np.zeros(0, dtype=np.int64)]
-        )
+    bounded = st.bounded_states(settings, vehicles)
     if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
         res = ekf_update(st.x, st.P, y, h, H, settings.r_scale * R, cols=cols)
     else:
