@@ -423,6 +423,88 @@ def fuse(
     )
 
 
+@cli.command()
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option(
+    "--gsd",
+    "gsd_m",
+    type=float,
+    default=None,
+    help="Metres per mosaic pixel (default: mosaic.gsd_m; 0 there: the images' own ground "
+    "resolution).",
+)
+@click.option(
+    "--source",
+    type=click.Choice(["fused", "deadreckoning", "groundtruth"]),
+    default=None,
+    help="Poses to project with (default: mosaic.source, fused). Outputs go to RUN_DIR/mosaic "
+    "(fused) or RUN_DIR/mosaic_<source>.",
+)
+@click.option(
+    "--log",
+    "log_paths",
+    multiple=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Log with the images (repeatable); default: the logs the features came from.",
+)
+@click.option(
+    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
+)
+@config_options
+def mosaic(
+    run_dir: Path,
+    gsd_m: float | None,
+    source: str | None,
+    log_paths: tuple[Path, ...],
+    force: bool,
+    cfg: Config,
+) -> None:
+    """Ground mosaics: each vehicle's left images projected on the ground with their poses,
+    blended per vehicle and all together.
+
+    Writes <vehicle>.png, all.png (with .pgw world files) and *_overlay.png to RUN_DIR/mosaic
+    (docs/mosaic.md).
+    """
+    from cvslam_cli.mosaic.stage import run
+
+    summary = run(
+        cfg,
+        run_dir,
+        source=source,
+        gsd_m=gsd_m,
+        log_paths=list(log_paths),
+        force=force,
+        progress=log.isEnabledFor(logging.INFO),
+    )
+    if summary.skipped:
+        return
+    for name, m in summary.mosaics.items():
+        truth = ""
+        if m.truth is not None:
+            truth = (
+                f"; vs true ground: shift {m.truth['shift_m']:.2f} m, NCC {m.truth['ncc']:.2f}, "
+                f"{100 * m.truth['tiles_matched']:.0f} % of tiles matched, local shift "
+                f"{m.truth['tile_shift_median_px']:.1f} px"
+            )
+        log.info(
+            "%s: %d images, %d x %d px, %.0f m^2 covered%s",
+            name,
+            m.images,
+            m.width_px,
+            m.height_px,
+            m.covered_m2,
+            truth,
+        )
+    log.info(
+        "mosaic (%s poses): %.3g m/px, %.1f images/s (%.1f s); wrote %s",
+        summary.source,
+        summary.gsd_m,
+        summary.images_per_s,
+        summary.wall_s,
+        summary.out_dir,
+    )
+
+
 # ----------------------------------------------------------------------------- entry
 
 

@@ -281,10 +281,42 @@ class FuseConfig:
 
 
 @dataclass(frozen=True)
+class GroundConfig:
+    """The ground surface images are projected on: a plane fitted to the mapped landmarks
+    (RANSAC), replaced by a plane of its own in each `region_size_m` square whose landmarks
+    lie a median distance of more than `max_residual_m` off the global plane."""
+
+    inlier_threshold_m: float = opt(2.0, lo=0.0, lo_open=True)
+    max_tilt_deg: float = opt(30.0, lo=0.0, hi=89.0, lo_open=True)
+    region_size_m: float = opt(35.0, lo=0.0, lo_open=True)
+    min_region_points: int = opt(20, lo=3)
+    max_residual_m: float = opt(1.0, lo=0.0)
+    max_landmark_std_m: float = opt(5.0, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class MosaicConfig:
+    source: Literal["fused", "deadreckoning", "groundtruth"] = "fused"
+    fuse_dir: str = "fuse"
+    every_nth: int = opt(1, lo=1)
+    gsd_m: float = opt(0.0, lo=0.0)
+    blend: Literal["feather", "multiband"] = "feather"
+    feather_sharpness: float = opt(0.02, lo=0.0, lo_open=True)
+    multiband_bands: int = opt(5, lo=1, hi=10)
+    border_px: int = opt(2, lo=0)
+    max_range_m: float = opt(0.0, lo=0.0)
+    min_depression_deg: float = opt(5.0, lo=0.0, hi=90.0)
+    max_canvas_mpx: float = opt(64.0, lo=0.0, lo_open=True)
+    overlay: bool = True
+    ground: GroundConfig = opt(GroundConfig())
+
+
+@dataclass(frozen=True)
 class Config:
     logs: LogsConfig = opt(LogsConfig())
     extract: ExtractConfig = opt(ExtractConfig())
     fuse: FuseConfig = opt(FuseConfig())
+    mosaic: MosaicConfig = opt(MosaicConfig())
 
 
 # --------------------------------------------------------------------------- building

@@ -119,3 +119,33 @@ def is_rotation(R: F64, tol: float = 1e-6) -> bool:
     return bool(
         R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=tol) and np.linalg.det(R) > 0
     )
+
+
+def interpolate_poses(
+    stamps_ns: NDArray[np.int64], p: F64, q_xyzw: F64, at_ns: NDArray[np.int64]
+) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """Poses of a trajectory (stamps (N,) increasing, positions (N, 3), quaternions (N, 4))
+    at stamps `at_ns` (K,): positions interpolated linearly, rotations by slerp. Returns
+    positions (K, 3), rotation matrices (K, 3, 3) and which stamps lie inside the
+    trajectory's span (the others are NaN)."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    at = np.asarray(at_ns, dtype=np.int64)
+    st = np.asarray(stamps_ns, dtype=np.int64)
+    out_p = np.full((len(at), 3), np.nan)
+    out_R = np.full((len(at), 3, 3), np.nan)
+    if len(st) == 0:
+        return out_p, out_R, np.zeros(len(at), bool)
+    ok = (at >= st[0]) & (at <= st[-1])
+    if not ok.any():
+        return out_p, out_R, ok
+    t = (st - st[0]).astype(float)
+    ta = (at[ok] - st[0]).astype(float)
+    for k in range(3):
+        out_p[ok, k] = np.interp(ta, t, p[:, k])
+    rots = Rotation.from_quat(np.asarray(q_xyzw, dtype=float))
+    if len(st) == 1:
+        out_R[ok] = rots.as_matrix()[0]
+    else:
+        out_R[ok] = Slerp(t, rots)(ta).as_matrix()
+    return out_p, out_R, ok

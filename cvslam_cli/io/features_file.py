@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.features.format import FORMAT_NAME, FORMAT_VERSION, FeatureSet, RigCalibration
@@ -71,3 +72,19 @@ def load_features(path: Path) -> tuple[FeatureSet, dict[str, Any]]:
     except (KeyError, ValueError) as exc:
         raise CvslamError(f"{path}: corrupt feature file ({exc})") from None
     return fs, json.loads(str(data["meta_json"]))
+
+
+def load_frame_index(path: Path) -> tuple[str, NDArray[np.int64], dict[str, Any]]:
+    """(vehicle, frame_stamp_ns (F,), meta) of a feature file, without reading the features."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if str(npz["format"]) != FORMAT_NAME:
+                raise CvslamError(f"{path}: not a cvslam feature file")
+            vehicle = str(npz["vehicle"])
+            stamps = np.asarray(npz["frame_stamp_ns"], dtype=np.int64)
+            meta = json.loads(str(npz["meta_json"]))
+    except FileNotFoundError:
+        raise CvslamError(f"{path}: feature file not found") from None
+    except (OSError, ValueError, KeyError) as exc:
+        raise CvslamError(f"{path}: not a readable feature file ({exc})") from None
+    return vehicle, stamps, meta

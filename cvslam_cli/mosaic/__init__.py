@@ -1,0 +1,1 @@
+"""`cvslam mosaic`: images projected on the ground with their poses, blended."""

@@ -1,0 +1,459 @@
+"""`cvslam mosaic`: every n-th left image of every vehicle projected on the ground with its
+pose, blended into one mosaic per vehicle and one of all vehicles (docs/mosaic.md).
+
+Inputs: the frames of `<run>/features/<vehicle>.npz` (their stamps and the logs they came
+from), the trajectories and landmark map of `<run>/<fuse_dir>/`, the images from the logs.
+1. Ground: planes fitted to the mapped landmarks (`ground.py`).
+2. Poses of the frames from the source (fused, dead reckoning, or the logs' ground truth),
+   the camera pose T_nav_cam = T_nav_body T_body_cam; each frame's footprint on the ground
+   (`project.py`), the GSD (configured, or the images' own median ground resolution), one
+   north-up canvas over all footprints; each vehicle's mosaic is a sub-rectangle of it, so
+   every warped image is fed to its vehicle's blender and the merged one unchanged.
+3. One pass over the logs: each selected left image is warped and fed (`blend.py`).
+4. Written to `<run>/mosaic*.partial/` and renamed when complete: `<vehicle>.png`,
+   `all.png` (BGRA, alpha 0 where no image fell) with world files, `*_overlay.png` with the
+   trajectories and landmarks. The summary in run.yaml gives images used, size, covered
+   area per mosaic, and, for a simulated run, the alignment with the true ground texture.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from cvslam_cli.config import Config, MosaicConfig
+from cvslam_cli.errors import CvslamError
+from cvslam_cli.estimation.stage import find_logs
+from cvslam_cli.geometry.camera import CameraModel
+from cvslam_cli.geometry.rotations import interpolate_poses
+from cvslam_cli.io.features_file import load_frame_index
+from cvslam_cli.io.fuse_files import MapTable, read_map_csv
+from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
+from cvslam_cli.io.records import PoseRecord, StereoFrame
+from cvslam_cli.io.rundir import RunDir
+from cvslam_cli.io.trajectory import PoseTable, read_tum
+from cvslam_cli.mosaic.blend import Blended, Compositor
+from cvslam_cli.mosaic.compare import align_to_reference, resample_reference
+from cvslam_cli.mosaic.ground import GroundFitError, GroundModel, fit_ground
+from cvslam_cli.mosaic.project import (
+    CanvasGrid,
+    ViewLimits,
+    footprint_box,
+    image_gsd_m,
+    warp_to_canvas,
+)
+
+log = logging.getLogger("cvslam")
+
+ALL = "all"
+# BGR colours of the vehicles' tracks in the overlays (matplotlib's tab10)
+PALETTE = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148))
+
+
+def output_name(source: str) -> str:
+    """`mosaic` for fused poses; `mosaic_deadreckoning`, `mosaic_groundtruth` otherwise."""
+    return "mosaic" if source == "fused" else f"mosaic_{source}"
+
+
+@dataclass(frozen=True)
+class MosaicInfo:
+    """One written mosaic: images fed, size (cols, rows) after cropping, covered area, and
+    its alignment with the simulator's true ground (None without one)."""
+
+    images: int
+    width_px: int
+    height_px: int
+    covered_m2: float
+    truth: dict[str, Any] | None
+
+
+@dataclass(frozen=True)
+class MosaicSummary:
+    run_dir: Path
+    out_dir: Path
+    skipped: bool
+    source: str
+    gsd_m: float = float("nan")
+    mosaics: dict[str, MosaicInfo] = dataclasses.field(default_factory=dict)
+    union_coverage: float = float("nan")
+    ground_local_regions: int = 0
+    images_per_s: float = float("nan")
+    wall_s: float = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class _Frame:
+    vehicle: str
+    stamp_ns: int
+    T_nav_cam: np.ndarray
+    box_ne: np.ndarray
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def _frame_index(run_dir: Path) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
+    fdir = run_dir / "features"
+    files = sorted(fdir.glob("*.npz")) if fdir.is_dir() else []
+    if not files:
+        raise CvslamError(
+            f"{fdir}: no feature files (<vehicle>.npz); run `cvslam extract` and "
+            "`cvslam fuse` first"
+        )
+    stamps, metas = {}, []
+    for f in files:
+        vehicle, st, meta = load_frame_index(f)
+        stamps[vehicle] = st
+        metas.append(meta)
+    return stamps, metas
+
+
+def _trajectory_files(fuse_dir: Path, vehicles: Sequence[str], source: str) -> dict[str, Path]:
+    suffix = "_deadreckoning" if source == "deadreckoning" else ""
+    out = {v: fuse_dir / f"{v}{suffix}.tum" for v in vehicles}
+    for path in out.values():
+        if not path.exists():
+            raise CvslamError(f"{path}: trajectory not found; run `cvslam fuse` first")
+    return out
+
+
+def _ground_truth(logs: LogSet, vehicles: Sequence[str]) -> dict[str, PoseTable]:
+    recs: dict[str, list[PoseRecord]] = {v: [] for v in vehicles}
+    for rec in logs.records(vehicles=list(vehicles), roles=("ground_truth",)):
+        if isinstance(rec, PoseRecord):
+            recs[rec.vehicle].append(rec)
+    out = {}
+    for v, g in recs.items():
+        if len(g) < 2:
+            raise CvslamError(
+                f"{logs.names}: vehicle {v}: no ground-truth poses on "
+                f"{logs.vehicles[v].topic('ground_truth')} (--source groundtruth needs them)"
+            )
+        out[v] = PoseTable(
+            np.array([r.stamp_ns for r in g], dtype=np.int64),
+            np.array([r.p_m for r in g], dtype=float),
+            np.array([r.q_xyzw for r in g], dtype=float),
+        )
+    return out
+
+
+def _landmarks(table: MapTable, max_std_m: float) -> np.ndarray:
+    ok = ~(table.max_std_m > max_std_m)  # NaN std (unknown) is kept
+    return table.p_nav_m[ok]
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def _two_digits(x: float) -> float:
+    """x rounded up to two significant digits."""
+    e = np.floor(np.log10(x)) - 1
+    return float(np.ceil(x / 10**e - 1e-9) * 10**e)
+
+
+def _union(boxes: Sequence[np.ndarray]) -> np.ndarray:
+    b = np.asarray(boxes)
+    return np.r_[b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()]
+
+
+def _camera_height(ground: GroundModel, c: np.ndarray) -> float:
+    return float(ground.z_at(c[0], c[1]) - c[2])
+
+
+def _limits(cfg: MosaicConfig, cam: CameraModel, height_m: float) -> ViewLimits:
+    rng = cfg.max_range_m or 20.0 * max(height_m, 0.1)
+    return ViewLimits(rng, cfg.min_depression_deg, cfg.border_px)
+
+
+# --------------------------------------------------------------------------- overlay
+
+
+def _overlay(
+    blended: Blended,
+    grid: CanvasGrid,
+    tracks: dict[str, np.ndarray],
+    landmarks: dict[str, np.ndarray],
+) -> np.ndarray:
+    """The mosaic (BGR, no-data grey) with tracks (lines) and landmarks (dots) drawn."""
+    img = blended.image
+    bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
+    bgr[~blended.mask] = (64, 64, 64)
+    sub = grid.sub((*blended.offset_rc, *blended.mask.shape))
+    scale = 16  # fixed-point drawing (4 fractional bits)
+    for i, (v, pts) in enumerate(tracks.items()):
+        colour = PALETTE[i % len(PALETTE)]
+        lm = landmarks.get(v, np.zeros((0, 3)))
+        r, c = sub.pixel_of(lm[:, 0], lm[:, 1])
+        for rr, cc in zip(r, c, strict=True):
+            cv2.circle(
+                bgr, (int(cc * scale), int(rr * scale)), 2 * scale, colour, 1, cv2.LINE_AA, 4
+            )
+        r, c = sub.pixel_of(pts[:, 0], pts[:, 1])
+        poly = np.round(np.c_[c, r] * scale).astype(np.int32)
+        cv2.polylines(bgr, [poly], False, colour, 2, cv2.LINE_AA, 4)
+        cv2.putText(
+            bgr, v, (10, 24 + 22 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.7, colour, 2, cv2.LINE_AA
+        )
+    return bgr
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def _with_overrides(cfg: Config, source: str | None, gsd_m: float | None) -> Config:
+    m = cfg.mosaic
+    if source is not None:
+        m = dataclasses.replace(m, source=source)  # type: ignore[arg-type]
+    if gsd_m is not None:
+        if not gsd_m > 0:
+            raise CvslamError(f"--gsd: expected metres per pixel > 0, got {gsd_m}")
+        m = dataclasses.replace(m, gsd_m=gsd_m)
+    return dataclasses.replace(cfg, mosaic=m)
+
+
+def run(
+    cfg: Config,
+    run_dir: Path,
+    *,
+    source: str | None = None,
+    gsd_m: float | None = None,
+    log_paths: Sequence[Path] = (),
+    force: bool = False,
+    progress: bool = False,
+) -> MosaicSummary:
+    cfg = _with_overrides(cfg, source, gsd_m)
+    mc = cfg.mosaic
+    rd = RunDir(run_dir)
+    frame_stamps, metas = _frame_index(run_dir)
+    vehicles = sorted(frame_stamps)
+    logs_used = list(log_paths) or find_logs(run_dir, metas)
+    fuse_dir = run_dir / mc.fuse_dir
+    map_path = fuse_dir / "map.csv"
+    if not map_path.exists():
+        raise CvslamError(f"{map_path}: landmark map not found; run `cvslam fuse` first")
+    traj_files = (
+        _trajectory_files(fuse_dir, vehicles, mc.source) if mc.source != "groundtruth" else {}
+    )
+    name = output_name(mc.source)
+    out_dir = run_dir / name
+    names = [*vehicles, ALL]
+    outputs = [out_dir / f"{n}{ext}" for n in names for ext in (".png", ".pgw")]
+    inputs = [*logs_used, map_path, *traj_files.values()]
+    plan = rd.plan(name, cfg, ("mosaic",), inputs, outputs, force)
+    if plan.action == "skip":
+        log.info("mosaic: %s is up to date (same config and inputs); --force to redo it", out_dir)
+        return MosaicSummary(run_dir, out_dir, True, mc.source)
+    t_start = time.perf_counter()
+
+    table = read_map_csv(map_path)
+    try:
+        ground = fit_ground(_landmarks(table, mc.ground.max_landmark_std_m), mc.ground)
+    except GroundFitError as exc:
+        raise CvslamError(f"{map_path}: no ground surface from the landmarks: {exc}") from None
+    logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
+    missing = [v for v in vehicles if v not in logs.vehicles]
+    if missing:
+        raise CvslamError(f"{logs.names}: no vehicle {missing[0]!r} (it has features)")
+    tables = (
+        _ground_truth(logs, vehicles)
+        if mc.source == "groundtruth"
+        else {v: read_tum(p) for v, p in traj_files.items()}
+    )
+    cams = {v: logs.rig(v).left for v in vehicles}
+
+    # -- frames, footprints, canvas
+    frames: list[_Frame] = []
+    limits: dict[str, ViewLimits] = {}
+    gsds: list[float] = []
+    for v in vehicles:
+        at = frame_stamps[v][:: mc.every_nth]
+        tab = tables[v]
+        p, R, ok = interpolate_poses(tab.stamps_ns, tab.p_m, tab.q_xyzw, at)
+        cam = cams[v]
+        T = np.zeros((len(at), 4, 4))
+        T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, p, 1.0
+        T_nav_cam = T @ cam.T_body_cam
+        heights = [_camera_height(ground, t[:3, 3]) for t in T_nav_cam[ok]]
+        if not heights:
+            log.warning("mosaic: %s: no pose at any of its frames; no images used", v)
+            continue
+        limits[v] = _limits(mc, cam, float(np.median(heights)))
+        step = max(1, int(ok.sum()) // 100)
+        for k in np.flatnonzero(ok):
+            box = footprint_box(cam, T_nav_cam[k], ground, limits[v])
+            if box is not None:
+                frames.append(_Frame(v, int(at[k]), T_nav_cam[k], box))
+            if k % step == 0:
+                gsds.append(image_gsd_m(cam, T_nav_cam[k], ground, limits[v]))
+    if not frames:
+        raise CvslamError(f"{run_dir}: no frame sees the ground; nothing to mosaic")
+    gsd = mc.gsd_m or _two_digits(float(np.nanmedian(gsds)))
+    box_all = _union([f.box_ne for f in frames])
+    grid = CanvasGrid.covering(box_all, gsd)
+    if grid.megapixels > mc.max_canvas_mpx:
+        coarser = _two_digits(gsd * np.sqrt(grid.megapixels / mc.max_canvas_mpx))
+        log.warning(
+            "mosaic: %.0f x %.0f m at %.3g m/px would be %.0f Mpx (mosaic.max_canvas_mpx %.0f); "
+            "using %.3g m/px",
+            box_all[2] - box_all[0],
+            box_all[3] - box_all[1],
+            gsd,
+            grid.megapixels,
+            mc.max_canvas_mpx,
+            coarser,
+        )
+        gsd = coarser
+        grid = CanvasGrid.covering(box_all, gsd)
+    sub_rois = {}
+    for v in {f.vehicle for f in frames}:
+        roi = grid.roi_of(_union([f.box_ne for f in frames if f.vehicle == v]))
+        assert roi is not None
+        sub_rois[v] = roi
+
+    def compositor(shape: tuple[int, int]) -> Compositor:
+        return Compositor(shape, mc.blend, sharpness=mc.feather_sharpness, bands=mc.multiband_bands)
+
+    comps = {v: compositor(roi[2:]) for v, roi in sub_rois.items()}
+    merged = compositor(grid.shape) if len(comps) > 1 else None
+
+    # -- one pass over the images
+    wanted = {(f.vehicle, f.stamp_ns): f for f in frames}
+    fed = 0
+    t_images = time.perf_counter()
+    with tqdm(
+        total=len(frames),
+        desc="mosaic",
+        unit="img",
+        disable=None if progress else True,
+        leave=False,
+    ) as bar:
+        for rec in logs.records(vehicles=sorted(comps), roles=("left_image", "right_image")):
+            if not isinstance(rec, StereoFrame):
+                continue
+            f = wanted.pop((rec.vehicle, rec.stamp_ns), None)
+            if f is None:
+                continue
+            roi = grid.roi_of(f.box_ne)
+            if roi is not None:
+                img = rec.left.image
+                if img.dtype != np.uint8:  # 16-bit: scale to 8 bits
+                    img = cv2.convertScaleAbs(img, alpha=255.0 / max(1.0, float(img.max())))
+                patch, mask = warp_to_canvas(
+                    img, cams[f.vehicle], f.T_nav_cam, ground, grid, roi, limits[f.vehicle]
+                )
+                r0, c0 = roi[0], roi[1]
+                vr0, vc0 = sub_rois[f.vehicle][:2]
+                comps[f.vehicle].feed(patch, mask, r0 - vr0, c0 - vc0)
+                if merged is not None:
+                    merged.feed(patch, mask, r0, c0)
+                fed += 1
+            bar.update(1)
+    t_fed = time.perf_counter() - t_images
+    if wanted:
+        log.warning("mosaic: %d selected frame(s) not found in the logs", len(wanted))
+
+    # -- results
+    tmp = out_dir.with_name(out_dir.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    truth = load_true_ground(run_dir / "truth" / "world.npz")
+    tracks = {v: tables[v].p_m for v in sorted(comps)}
+    observers = [set(o.split(";")) for o in table.observers]
+    lm_of = {v: table.p_nav_m[np.array([v in o for o in observers], bool)] for v in tracks}
+    results: dict[str, tuple[Blended, CanvasGrid, int]] = {}
+    for v, comp in comps.items():
+        results[v] = (comp.result(), grid.sub(sub_rois[v]), comp.fed)
+    if merged is not None:
+        results[ALL] = (merged.result(), grid, merged.fed)
+    else:
+        results[ALL] = results[next(iter(comps))]
+    infos: dict[str, MosaicInfo] = {}
+    for n, (b, g, count) in results.items():
+        sub = g.sub((*b.offset_rc, *b.mask.shape))
+        write_png_atomic(tmp / f"{n}.png", b.image, b.mask)
+        write_world_file(tmp / f"{n}.pgw", sub.n_max, sub.e_min, sub.gsd_m)
+        if mc.overlay:
+            sel = tracks if n == ALL else {n: tracks[n]}
+            lms = lm_of if n == ALL else {n: lm_of[n]}
+            write_png_atomic(tmp / f"{n}_overlay.png", _overlay(b, g, sel, lms), None)
+        truth_info = None
+        if truth is not None:
+            ref, ref_ok = resample_reference(truth[0], truth[1], truth[2], sub)
+            truth_info = align_to_reference(b.image, b.mask, ref, ref_ok).as_dict(sub.gsd_m)
+        infos[n] = MosaicInfo(
+            images=count,
+            width_px=int(b.mask.shape[1]),
+            height_px=int(b.mask.shape[0]),
+            covered_m2=round(b.covered_px * gsd * gsd, 1),
+            truth=truth_info,
+        )
+    union = _union_coverage(results, grid, sub_rois) if merged is not None else 1.0
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
+    wall = time.perf_counter() - t_start
+    summary = MosaicSummary(
+        run_dir=run_dir,
+        out_dir=out_dir,
+        skipped=False,
+        source=mc.source,
+        gsd_m=gsd,
+        mosaics=infos,
+        union_coverage=union,
+        ground_local_regions=ground.local_regions,
+        images_per_s=fed / t_fed if t_fed > 0 else float("nan"),
+        wall_s=wall,
+    )
+    rd.record(
+        name,
+        plan,
+        outputs,
+        {
+            "source": mc.source,
+            "gsd_m": gsd,
+            "canvas_px": [grid.shape[1], grid.shape[0]],
+            "ground": {
+                "landmarks": ground.points,
+                "inliers": ground.inliers,
+                "residual_rms_m": round(ground.residual_rms_m, 3),
+                "local_regions": ground.local_regions,
+            },
+            "mosaics": {n: dataclasses.asdict(i) for n, i in infos.items()},
+            "union_coverage": round(union, 4),
+            "images_per_s": round(summary.images_per_s, 2),
+        },
+        wall,
+    )
+    return summary
+
+
+def _union_coverage(
+    results: dict[str, tuple[Blended, CanvasGrid, int]],
+    grid: CanvasGrid,
+    sub_rois: dict[str, tuple[int, int, int, int]],
+) -> float:
+    """Fraction of the union of the vehicles' covered pixels that the merged mosaic covers."""
+    union = np.zeros(grid.shape, bool)
+    for v, roi in sub_rois.items():
+        b = results[v][0]
+        r0, c0 = roi[0] + b.offset_rc[0], roi[1] + b.offset_rc[1]
+        h, w = b.mask.shape
+        union[r0 : r0 + h, c0 : c0 + w] |= b.mask
+    merged = np.zeros(grid.shape, bool)
+    b = results[ALL][0]
+    h, w = b.mask.shape
+    merged[b.offset_rc[0] : b.offset_rc[0] + h, b.offset_rc[1] : b.offset_rc[1] + w] = b.mask
+    n = int(union.sum())
+    return float((union & merged).sum() / n) if n else float("nan")
