@@ -284,13 +284,14 @@ class FuseConfig:
 class GroundConfig:
     """The ground surface images are projected on: a plane fitted to the mapped landmarks
     (RANSAC), replaced by a plane of its own in each `region_size_m` square whose landmarks
-    lie a median distance of more than `max_residual_m` off the global plane."""
+    lie a median distance of more than `max_residual_m` off the global plane. Thresholds of
+    0 scale with the scene (mosaic/ground.py)."""
 
-    inlier_threshold_m: float = opt(2.0, lo=0.0, lo_open=True)
+    inlier_threshold_m: float = opt(0.0, lo=0.0)
     max_tilt_deg: float = opt(30.0, lo=0.0, hi=89.0, lo_open=True)
     region_size_m: float = opt(35.0, lo=0.0, lo_open=True)
     min_region_points: int = opt(20, lo=3)
-    max_residual_m: float = opt(1.0, lo=0.0)
+    max_residual_m: float = opt(0.0, lo=0.0)
     max_landmark_std_m: float = opt(5.0, lo=0.0, lo_open=True)
 
 

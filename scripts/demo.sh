@@ -16,6 +16,9 @@ echo "== cvslam demo: the filter, cooperative NH-infinity, then each UAV alone a
 "$cvslam" fuse "$out/run" --force
 "$cvslam" fuse "$out/run" --single --force
 "$cvslam" fuse "$out/run" --filter ekf --force
+echo
+echo "== cvslam demo: ground mosaics from the fused poses, per UAV and merged"
+"$cvslam" mosaic "$out/run" --force
 
 if [ -d "$data/euroc_v101_micro/mav0" ]; then
   echo
@@ -28,5 +31,6 @@ fi
 echo
 echo "Logs and ground truth are in $out/sim (open the .mcap files in Foxglove or read them"
 echo "with rosbags); features in $out/run/features; trajectories, map, timeline and"
-echo "result.mcap in $out/run/fuse (cooperative), fuse_single, fuse_ekf. Still to land:"
-echo "mosaic -> eval, the headline table and eval/report.html."
+echo "result.mcap in $out/run/fuse (cooperative), fuse_single, fuse_ekf; mosaics (PNG + world"
+echo "files, overlays) in $out/run/mosaic. Still to land: eval, the headline table and"
+echo "eval/report.html."

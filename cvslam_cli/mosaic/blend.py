@@ -45,8 +45,11 @@ class Blended:
 
 
 def feather_weights(mask: NDArray[np.uint8], sharpness: float) -> NDArray[np.float32]:
-    """OpenCV's feather weight map: L1 distance to the mask's edge x sharpness, capped at 1."""
-    w = cv2.distanceTransform(mask, cv2.DIST_L1, 3)
+    """OpenCV's feather weight map: L1 distance to the mask's edge x sharpness, capped at 1.
+    The patch's border counts as an edge (distanceTransform alone would treat it as far
+    away: a mask valid up to the border would get full weight there, a hard cut)."""
+    padded = cv2.copyMakeBorder(mask, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    w = cv2.distanceTransform(padded, cv2.DIST_L1, 3)[1:-1, 1:-1]
     return np.minimum(w * np.float32(sharpness), np.float32(1.0))
 
 
@@ -128,15 +131,15 @@ class Compositor:
         r1 = min(H, -(-(row0 + mask.shape[0] + unit) // unit) * unit)
         c1 = min(W, -(-(col0 + mask.shape[1] + unit) // unit) * unit)
         valid = mask > 0
-        # outside the mask: the mean of the image (no artificial edge at the mask border)
-        fill = img[valid].mean(axis=0)
-        big = np.empty((r1 - r0, c1 - c0, self.channels), np.float32)
-        big[:] = fill
+        big = np.zeros((r1 - r0, c1 - c0, self.channels), np.float32)
         m = np.zeros((r1 - r0, c1 - c0), np.float32)
         pr, pc = row0 - r0, col0 - c0
         sl = (slice(pr, pr + mask.shape[0]), slice(pc, pc + mask.shape[1]))
-        big[sl] = np.where(valid[:, :, None], img, fill)
+        big[sl] = np.where(valid[:, :, None], img, 0.0)
         m[sl] = valid
+        # outside the mask: a smooth continuation of the content (no artificial edge at the
+        # mask border for the Laplacian levels to carry across it)
+        big = _extrapolate(big, m)
         gauss = big
         for k in range(self.bands + 1):
             down = _down(gauss) if k < self.bands else None
@@ -177,6 +180,24 @@ class Compositor:
             r0, r1, c0, c1 = int(rr[0]), int(rr[-1]) + 1, int(cc[0]), int(cc[-1]) + 1
             img, mask = img[r0:r1, c0:c1], mask[r0:r1, c0:c1]
         return Blended(np.ascontiguousarray(img), np.ascontiguousarray(mask), (r0, c0))
+
+
+def _extrapolate(img: NDArray[np.float32], valid: NDArray[np.float32]) -> NDArray[np.float32]:
+    """`img` (h, w, c) kept where `valid` (h, w) is 1 and continued smoothly elsewhere
+    (push-pull: mask-normalised pyramid averages, each level filling the holes of the next
+    finer one)."""
+    imgs, ws = [img * valid[:, :, None]], [valid]
+    while min(ws[-1].shape) > 2:
+        imgs.append(_down(imgs[-1]))
+        ws.append(cv2.pyrDown(ws[-1]))
+    out = imgs[-1] / np.maximum(ws[-1], 1e-6)[:, :, None]
+    if (ws[-1] <= 1e-6).any():
+        out[ws[-1] <= 1e-6] = img[valid > 0].mean(axis=0)
+    for k in range(len(imgs) - 2, -1, -1):
+        known = valid if k == 0 else np.minimum(ws[k] * 4.0, 1.0)
+        cur = imgs[k] / np.maximum(ws[k], 1e-6)[:, :, None]
+        out = known[:, :, None] * cur + (1.0 - known[:, :, None]) * _up(out, imgs[k].shape)
+    return out
 
 
 def _down(img: NDArray[np.float32]) -> NDArray[np.float32]:

@@ -5,9 +5,14 @@ north and east coordinates (nav x, y) in metres; z is down, so the ground's elev
 This form is valid for planes within `max_tilt_deg` (< 90) of horizontal, which is what a
 ground is; the fit refuses steeper ones (walls, building faces).
 
-- `fit_plane`: RANSAC over 3-point samples whose normal is within `max_tilt_deg` of vertical,
-  inliers within `inlier_threshold_m` (perpendicular distance), then least squares on the
-  inliers, re-selected twice. Seeded, so deterministic.
+- `fit_plane`: RANSAC over 3-point samples whose normal is within `max_tilt_deg` of vertical
+  and which pass below the cameras, inliers within `inlier_threshold_m` (perpendicular
+  distance), then least squares on the inliers, re-selected twice. Seeded, so deterministic.
+- Scale: the thresholds default (0) to fractions of the scene's scale, the median distance
+  from a landmark to the nearest camera position: inliers within 2 % of it, regional planes
+  where the median residual exceeds 1 %. A UAV at 100 m mapping ground 100-150 m away gets
+  ~2 m; a ground robot seeing the ground 3-8 m away ~0.1 m, which separates the ground from
+  the boxes and walls standing on it.
 - `fit_ground`: one plane for the whole map, and, for each `region_size_m` square whose
   landmarks (at least `min_region_points` in the square and half a square around it, so
   that neighbouring planes agree) lie a median distance of more than `max_residual_m` from
@@ -41,7 +46,8 @@ class GroundModel:
     `region_m` with their south-west corner at `origin_ne` (2,); `region_abc` (I, J, 3): the
     plane of region (i, j) (north index i, east index j), the global plane where the region
     has none of its own; `local` (I, J) bool: the region has its own plane.
-    `inliers`/`points` count the landmarks on the global plane / used."""
+    `inliers`/`points` count the landmarks on the global plane / used; `threshold_m` the
+    inlier threshold used."""
 
     global_abc: F64
     origin_ne: F64
@@ -51,13 +57,14 @@ class GroundModel:
     inliers: int
     points: int
     residual_rms_m: float
+    threshold_m: float = float("nan")
 
     @property
     def local_regions(self) -> int:
         return int(self.local.sum())
 
     def z_at(self, n: F64, e: F64) -> F64:
-        """Ground z (nav, down) at north `n`, east `e` (any matching shapes)."""
+        """Ground z (nav, down) at north `n`, east `e` (any matching shapes; NaN in, NaN out)."""
         n = np.asarray(n, dtype=float)
         e = np.asarray(e, dtype=float)
         a, b, c = self.global_abc
@@ -69,8 +76,9 @@ class GroundModel:
         abc = np.empty((ni + 2, nj + 2, 3))
         abc[:] = self.global_abc
         abc[1:-1, 1:-1] = self.region_abc
-        fi = (n - self.origin_ne[0]) / self.region_m - 0.5 + 1.0
-        fj = (e - self.origin_ne[1]) / self.region_m - 0.5 + 1.0
+        finite = np.isfinite(n) & np.isfinite(e)
+        fi = (np.where(finite, n, 0.0) - self.origin_ne[0]) / self.region_m - 0.5 + 1.0
+        fj = (np.where(finite, e, 0.0) - self.origin_ne[1]) / self.region_m - 0.5 + 1.0
         fi = np.clip(fi, 0.0, ni + 1.0)
         fj = np.clip(fj, 0.0, nj + 1.0)
         i0 = np.minimum(np.floor(fi).astype(int), ni)
@@ -85,7 +93,7 @@ class GroundModel:
         ):
             p = abc[i0 + di, j0 + dj]
             z = z + w * (p[..., 0] + p[..., 1] * n + p[..., 2] * e)
-        return z
+        return np.where(finite, z, np.nan)
 
 
 def _plane_from_3(p: F64) -> tuple[F64, float] | None:
@@ -115,9 +123,11 @@ def fit_plane(
     inlier_threshold_m: float,
     max_tilt_deg: float,
     rng: np.random.Generator,
+    below_nav_m: F64 | None = None,
     iterations: int = 300,
 ) -> tuple[F64, NDArray[np.bool_]]:
-    """RANSAC plane through `pts` (N, 3) nav; returns (a, b, c) and the inlier mask."""
+    """RANSAC plane through `pts` (N, 3) nav, passing below the point `below_nav_m` (a
+    camera) when given; returns (a, b, c) and the inlier mask."""
     pts = np.asarray(pts, dtype=float).reshape(-1, 3)
     if len(pts) < 3:
         raise GroundFitError(f"{len(pts)} landmarks, at least 3 are needed for a ground plane")
@@ -129,6 +139,11 @@ def fit_plane(
         plane = _plane_from_3(sample)
         if plane is None or abs(plane[0][2]) < cos_tilt:
             continue
+        if below_nav_m is not None:
+            nrm, d = plane
+            z = (d - nrm[0] * below_nav_m[0] - nrm[1] * below_nav_m[1]) / nrm[2]
+            if z <= below_nav_m[2]:  # NED: the plane must be below (larger z)
+                continue
         inl = np.abs(pts @ plane[0] - plane[1]) < inlier_threshold_m
         count = int(inl.sum())
         if count > best_count:
@@ -150,13 +165,26 @@ def fit_plane(
     return abc, inl
 
 
-def fit_ground(points_nav_m: F64, cfg: GroundConfig, seed: int = 0) -> GroundModel:
-    """Global plane and per-region planes (module docstring) from landmarks (N, 3)."""
+def fit_ground(
+    points_nav_m: F64, cameras_nav_m: F64, cfg: GroundConfig, seed: int = 0
+) -> GroundModel:
+    """Global plane and per-region planes (module docstring) from landmarks (N, 3) seen
+    from camera positions (M, 3)."""
+    from scipy.spatial import cKDTree
+
     pts = np.asarray(points_nav_m, dtype=float).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
+    cams = np.asarray(cameras_nav_m, dtype=float).reshape(-1, 3)
+    cams = cams[np.all(np.isfinite(cams), axis=1)]
+    if len(pts) < 3 or not len(cams):
+        raise GroundFitError(f"{len(pts)} landmarks and {len(cams)} camera positions")
+    scale = float(np.median(cKDTree(cams).query(pts)[0]))
+    thr = cfg.inlier_threshold_m or 0.02 * scale
+    max_residual = cfg.max_residual_m or 0.01 * scale
+    below = np.median(cams, axis=0)
     rng = np.random.default_rng(seed)
     abc, inl = fit_plane(
-        pts, inlier_threshold_m=cfg.inlier_threshold_m, max_tilt_deg=cfg.max_tilt_deg, rng=rng
+        pts, inlier_threshold_m=thr, max_tilt_deg=cfg.max_tilt_deg, rng=rng, below_nav_m=below
     )
     resid = _abc_distance(abc, pts[inl])
     size = cfg.region_size_m
@@ -174,14 +202,15 @@ def fit_ground(points_nav_m: F64, cfg: GroundConfig, seed: int = 0) -> GroundMod
             if here.sum() < cfg.min_region_points:
                 continue
             # the global plane fits this region's ground: keep it
-            if np.median(dist[here]) <= cfg.max_residual_m:
+            if np.median(dist[here]) <= max_residual:
                 continue
             try:
                 local_abc, local_inl = fit_plane(
                     pts[here],
-                    inlier_threshold_m=cfg.inlier_threshold_m,
+                    inlier_threshold_m=thr,
                     max_tilt_deg=cfg.max_tilt_deg,
                     rng=rng,
+                    below_nav_m=below,
                     iterations=100,
                 )
             except GroundFitError:
@@ -198,4 +227,5 @@ def fit_ground(points_nav_m: F64, cfg: GroundConfig, seed: int = 0) -> GroundMod
         inliers=int(inl.sum()),
         points=len(pts),
         residual_rms_m=float(np.sqrt(np.mean(resid**2))) if resid.size else float("nan"),
+        threshold_m=float(thr),
     )

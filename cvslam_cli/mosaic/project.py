@@ -155,14 +155,22 @@ def footprint_box(
 
 
 def image_gsd_m(cam: CameraModel, T_nav_cam: F64, ground: GroundModel, limits: ViewLimits) -> float:
-    """Median ground distance (depth) of the frame's valid sample pixels over the focal
-    length: the image's own ground resolution [m/px]; NaN when it sees no ground."""
+    """The image's own ground resolution [m/px]: the median over its valid sample pixels of
+    the side of the ground square a pixel covers, depth / (f sqrt(cos incidence)), with the
+    incidence angle between the ray and the ground's normal (a nadir view: depth / f; an
+    oblique one is coarser along the line of sight); NaN when it sees no ground."""
     uv = _border_pixels(cam, 8)
     p, ok = ground_hits(cam, T_nav_cam, ground, uv, limits)
     if not ok.any():
         return float("nan")
-    depth = (p[ok] - T_nav_cam[:3, 3]) @ T_nav_cam[:3, 2]
-    return float(np.median(depth) / np.sqrt(cam.fx * cam.fy))
+    rel = p[ok] - T_nav_cam[:3, 3]
+    dist = np.linalg.norm(rel, axis=1)
+    depth = rel @ T_nav_cam[:3, 2]
+    _, b, c = ground.global_abc
+    normal = np.array([-b, -c, 1.0]) / np.sqrt(1.0 + b * b + c * c)
+    cos_inc = np.abs(rel @ normal) / np.maximum(dist, 1e-12)
+    side = depth / (np.sqrt(cam.fx * cam.fy) * np.sqrt(np.maximum(cos_inc, 1e-3)))
+    return float(np.median(side))
 
 
 def _upsample(coarse: NDArray, step: int, h: int, w: int) -> NDArray[np.float32]:

