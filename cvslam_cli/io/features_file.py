@@ -88,3 +88,20 @@ def load_frame_index(path: Path) -> tuple[str, NDArray[np.int64], dict[str, Any]
     except (OSError, ValueError, KeyError) as exc:
         raise CvslamError(f"{path}: not a readable feature file ({exc})") from None
     return vehicle, stamps, meta
+
+
+def feature_frame_index(run_dir: Path) -> tuple[dict[str, NDArray[np.int64]], list[dict[str, Any]]]:
+    """({vehicle: frame_stamp_ns}, metas) of every feature file of a run directory."""
+    fdir = run_dir / "features"
+    files = sorted(fdir.glob("*.npz")) if fdir.is_dir() else []
+    if not files:
+        raise CvslamError(
+            f"{fdir}: no feature files (<vehicle>.npz); run `cvslam extract` and "
+            "`cvslam fuse` first"
+        )
+    stamps, metas = {}, []
+    for f in files:
+        vehicle, st, meta = load_frame_index(f)
+        stamps[vehicle] = st
+        metas.append(meta)
+    return stamps, metas

@@ -42,6 +42,7 @@ from cvslam_cli.io.records import (
     Record,
     StereoFrame,
 )
+from cvslam_cli.io.trajectory import PoseTable
 
 log = logging.getLogger("cvslam")
 
@@ -636,3 +637,25 @@ class _StereoPairer:
         for (vehicle, side), q in self.queues.items():
             self._unpaired(vehicle, side, len(q))
             q.clear()
+
+
+def ground_truth_tables(logs: LogSet, vehicles: Sequence[str]) -> dict[str, PoseTable]:
+    """Each vehicle's ground-truth poses from the logs' ground-truth topic; LogError naming
+    the topic for a vehicle with fewer than two."""
+    recs: dict[str, list[PoseRecord]] = {v: [] for v in vehicles}
+    for rec in logs.records(vehicles=list(vehicles), roles=("ground_truth",)):
+        if isinstance(rec, PoseRecord):
+            recs[rec.vehicle].append(rec)
+    out = {}
+    for v, g in recs.items():
+        if len(g) < 2:
+            raise LogError(
+                f"{logs.names}: vehicle {v}: no ground-truth poses on "
+                f"{logs.vehicles[v].topic('ground_truth')}"
+            )
+        out[v] = PoseTable(
+            np.array([r.stamp_ns for r in g], dtype=np.int64),
+            np.array([r.p_m for r in g], dtype=float),
+            np.array([r.q_xyzw for r in g], dtype=float),
+        )
+    return out

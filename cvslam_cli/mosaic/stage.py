@@ -36,14 +36,14 @@ from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.stage import find_logs
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
-from cvslam_cli.io.features_file import load_frame_index
+from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import MapTable, read_map_csv
-from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.logs import LogSet, ground_truth_tables
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
-from cvslam_cli.io.records import PoseRecord, StereoFrame
+from cvslam_cli.io.records import StereoFrame
 from cvslam_cli.io.rundir import RunDir
-from cvslam_cli.io.trajectory import PoseTable, read_tum
+from cvslam_cli.io.trajectory import read_tum
 from cvslam_cli.mosaic.blend import Blended, Compositor
 from cvslam_cli.mosaic.compare import align_to_reference, resample_reference
 from cvslam_cli.mosaic.ground import GroundFitError, GroundModel, fit_ground
@@ -104,48 +104,12 @@ class _Frame:
 # --------------------------------------------------------------------------- inputs
 
 
-def _frame_index(run_dir: Path) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
-    fdir = run_dir / "features"
-    files = sorted(fdir.glob("*.npz")) if fdir.is_dir() else []
-    if not files:
-        raise CvslamError(
-            f"{fdir}: no feature files (<vehicle>.npz); run `cvslam extract` and "
-            "`cvslam fuse` first"
-        )
-    stamps, metas = {}, []
-    for f in files:
-        vehicle, st, meta = load_frame_index(f)
-        stamps[vehicle] = st
-        metas.append(meta)
-    return stamps, metas
-
-
 def _trajectory_files(fuse_dir: Path, vehicles: Sequence[str], source: str) -> dict[str, Path]:
     suffix = "_deadreckoning" if source == "deadreckoning" else ""
     out = {v: fuse_dir / f"{v}{suffix}.tum" for v in vehicles}
     for path in out.values():
         if not path.exists():
             raise CvslamError(f"{path}: trajectory not found; run `cvslam fuse` first")
-    return out
-
-
-def _ground_truth(logs: LogSet, vehicles: Sequence[str]) -> dict[str, PoseTable]:
-    recs: dict[str, list[PoseRecord]] = {v: [] for v in vehicles}
-    for rec in logs.records(vehicles=list(vehicles), roles=("ground_truth",)):
-        if isinstance(rec, PoseRecord):
-            recs[rec.vehicle].append(rec)
-    out = {}
-    for v, g in recs.items():
-        if len(g) < 2:
-            raise CvslamError(
-                f"{logs.names}: vehicle {v}: no ground-truth poses on "
-                f"{logs.vehicles[v].topic('ground_truth')} (--source groundtruth needs them)"
-            )
-        out[v] = PoseTable(
-            np.array([r.stamp_ns for r in g], dtype=np.int64),
-            np.array([r.p_m for r in g], dtype=float),
-            np.array([r.q_xyzw for r in g], dtype=float),
-        )
     return out
 
 
@@ -247,7 +211,7 @@ def run(
     cfg = _with_overrides(cfg, source, gsd_m)
     mc = cfg.mosaic
     rd = RunDir(run_dir)
-    frame_stamps, metas = _frame_index(run_dir)
+    frame_stamps, metas = feature_frame_index(run_dir)
     vehicles = sorted(frame_stamps)
     logs_used = list(log_paths) or find_logs(run_dir, metas)
     fuse_dir = run_dir / mc.fuse_dir
@@ -274,7 +238,7 @@ def run(
     if missing:
         raise CvslamError(f"{logs.names}: no vehicle {missing[0]!r} (it has features)")
     tables = (
-        _ground_truth(logs, vehicles)
+        ground_truth_tables(logs, vehicles)
         if mc.source == "groundtruth"
         else {v: read_tum(p) for v, p in traj_files.items()}
     )
