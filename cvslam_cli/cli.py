@@ -7,6 +7,7 @@ bug and keeps its traceback.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -308,6 +309,12 @@ def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cf
     Writes RUN_DIR/features/<vehicle>.npz (docs/feature_format.md) and
     <vehicle>_stats.csv, and records the stage in RUN_DIR/run.yaml.
     """
+    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
+
+
+def do_extract(
+    cfg: Config, logs: Sequence[Path], run_dir: Path, *, workers: int, force: bool
+) -> None:
     from cvslam_cli.features.stage import run
 
     summary = run(
@@ -379,6 +386,18 @@ def fuse(
     Writes trajectories, dead reckoning, pose covariances, the landmark map, timeline,
     events and result.mcap to RUN_DIR/fuse (docs/fuse_outputs.md).
     """
+    do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=log_paths, force=force)
+
+
+def do_fuse(
+    cfg: Config,
+    run_dir: Path,
+    *,
+    filter_kind: str | None,
+    single: bool,
+    log_paths: Sequence[Path],
+    force: bool,
+) -> None:
     from cvslam_cli.estimation.stage import run
 
     summary = run(
@@ -465,6 +484,18 @@ def mosaic(
     Writes <vehicle>.png, all.png (with .pgw world files) and *_overlay.png to RUN_DIR/mosaic
     (docs/mosaic.md).
     """
+    do_mosaic(cfg, run_dir, source=source, gsd_m=gsd_m, log_paths=log_paths, force=force)
+
+
+def do_mosaic(
+    cfg: Config,
+    run_dir: Path,
+    *,
+    source: str | None,
+    gsd_m: float | None,
+    log_paths: Sequence[Path],
+    force: bool,
+) -> None:
     from cvslam_cli.mosaic.stage import run
 
     summary = run(
@@ -503,6 +534,112 @@ def mosaic(
         summary.wall_s,
         summary.out_dir,
     )
+
+
+# ----------------------------------------------------------------------------- eval, run
+
+_GT_HELP = (
+    "Ground truth (repeatable): a TUM or KITTI file named <vehicle>.tum/.txt, or "
+    "VEHICLE=FILE; default: the logs' ground-truth topic."
+)
+
+
+@cli.command("eval")
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--gt", "gt", multiple=True, metavar="FILE", help=_GT_HELP)
+@click.option(
+    "--align",
+    type=click.Choice(["none", "se3", "sim3"]),
+    default=None,
+    help="Align each estimate to the truth first (default: eval.align, none).",
+)
+@click.option(
+    "--log",
+    "log_paths",
+    multiple=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Log with the ground truth (repeatable); default: the logs the features came from.",
+)
+@click.option(
+    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
+)
+@config_options
+def eval_cmd(
+    run_dir: Path,
+    gt: tuple[str, ...],
+    align: str | None,
+    log_paths: tuple[Path, ...],
+    force: bool,
+    cfg: Config,
+) -> None:
+    """Metrics (ATE, RPE, drift, NEES), figures and report.html for every estimate in RUN_DIR.
+
+    Writes RUN_DIR/eval/metrics.json, metrics.csv, headline.csv, figures/*.png and
+    report.html (docs/eval.md).
+    """
+    if align is not None:
+        cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, align=align))
+    do_eval(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+
+
+def do_eval(
+    cfg: Config, run_dir: Path, *, gt: Sequence[str], log_paths: Sequence[Path], force: bool
+) -> None:
+    from cvslam_cli.evaluation.stage import headline_text, run
+
+    summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+    click.echo(headline_text(summary.headline))
+    log.info("report: %s", summary.out_dir / "report.html")
+
+
+@cli.command("run")
+@click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    "run_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Run directory.",
+)
+@click.option("--gt", "gt", multiple=True, metavar="FILE", help=_GT_HELP)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=2,
+    show_default=True,
+    help="Processes working on frames in parallel (extract).",
+)
+@click.option("--force", is_flag=True, help="Redo every stage.")
+@config_options
+def run_cmd(
+    logs: tuple[Path, ...],
+    run_dir: Path,
+    gt: tuple[str, ...],
+    workers: int,
+    force: bool,
+    cfg: Config,
+) -> None:
+    """All stages on LOG... with one config: extract, fuse (cooperative NH-infinity and the
+    comparisons in run.comparisons), mosaic, eval. Stages whose config and inputs are
+    unchanged are skipped.
+    """
+    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
+    do_fuse(cfg, run_dir, filter_kind="hinf", single=False, log_paths=(), force=force)
+    for comparison in cfg.run.comparisons:
+        filter_kind = "ekf" if comparison.startswith("ekf") else "hinf"
+        single = comparison.endswith("single")
+        do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=(), force=force)
+    if cfg.run.mosaic:
+        do_mosaic(cfg, run_dir, source=None, gsd_m=None, log_paths=(), force=force)
+    from cvslam_cli.evaluation.stage import has_ground_truth
+
+    if gt or has_ground_truth(cfg, run_dir):
+        do_eval(cfg, run_dir, gt=gt, log_paths=(), force=force)
+    else:
+        log.warning(
+            "eval skipped: the logs have no ground truth (give it with --gt FILE to evaluate)"
+        )
 
 
 # ----------------------------------------------------------------------------- entry

@@ -313,11 +313,35 @@ class MosaicConfig:
 
 
 @dataclass(frozen=True)
+class EvalConfig:
+    """`cvslam eval`: alignment of estimates to the truth (none: the nav frame is known),
+    timestamp association tolerance, RPE distances (empty: 10 % and 25 % of each vehicle's
+    path), and the probability of the NEES consistency band."""
+
+    align: Literal["none", "se3", "sim3"] = "none"
+    max_time_diff_ms: float = opt(10.0, lo=0.0)
+    rpe_delta_m: tuple[float, ...] = ()
+    nees_band_probability: float = opt(0.95, lo=0.0, hi=1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """`cvslam run`: the fuse runs made besides the cooperative NH-infinity one, for
+    comparison (single: each vehicle alone; ekf: the EKF; ekf_single), and whether to
+    make mosaics."""
+
+    comparisons: tuple[Literal["single", "ekf", "ekf_single"], ...] = ("single", "ekf")
+    mosaic: bool = True
+
+
+@dataclass(frozen=True)
 class Config:
     logs: LogsConfig = opt(LogsConfig())
     extract: ExtractConfig = opt(ExtractConfig())
     fuse: FuseConfig = opt(FuseConfig())
     mosaic: MosaicConfig = opt(MosaicConfig())
+    eval: EvalConfig = opt(EvalConfig())
+    run: RunConfig = opt(RunConfig())
 
 
 # --------------------------------------------------------------------------- building

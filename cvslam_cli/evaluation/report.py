@@ -1,0 +1,125 @@
+"""The evaluation report: one self-contained HTML page (every image embedded as a data URI,
+no external file, script or font), readable offline and mailable as one file.
+
+Sections: the headline table, the figures (each with its caption), the full metrics table,
+the config used (YAML) and the data provenance (inputs with checksums, versions, when).
+A small inline script counts the images that decoded and writes the result into
+`<body data-images-loaded="N" data-images-total="M">`, so a headless browser can check the
+page rendered completely (`scripts/check_report.py`).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+_CSS = """
+body { font-family: -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif;
+       margin: 2em auto; max-width: 1200px; color: #222; padding: 0 1em; }
+h1 { font-size: 1.6em; margin-bottom: 0.2em; }
+h2 { margin-top: 2em; border-bottom: 1px solid #ccc; }
+.sub { color: #666; margin-top: 0; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 0.92em; }
+th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: right; }
+th { background: #f3f3f3; } td:first-child, th:first-child { text-align: left; }
+figure { margin: 1.5em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { color: #444; font-size: 0.92em; margin-top: 0.3em; }
+pre { background: #f7f7f7; padding: 1em; overflow-x: auto; font-size: 0.85em; }
+.note { color: #555; font-size: 0.92em; }
+"""
+
+_SCRIPT = """
+window.addEventListener("load", function () {
+  var imgs = document.images, ok = 0;
+  for (var i = 0; i < imgs.length; i++) {
+    if (imgs[i].complete && imgs[i].naturalWidth > 0) ok++;
+  }
+  document.body.setAttribute("data-images-loaded", String(ok));
+  document.body.setAttribute("data-images-total", String(imgs.length));
+});
+"""
+
+
+@dataclass(frozen=True)
+class FigureEntry:
+    """A PNG to embed, with its title and caption."""
+
+    path: Path
+    title: str
+    caption: str
+
+
+def _img_tag(path: Path, alt: str) -> str:
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _table(frame: pd.DataFrame, float_format: str = "{:.3f}") -> str:
+    def cell(v: object) -> str:
+        if isinstance(v, float):
+            return "&ndash;" if v != v else float_format.format(v)  # NaN
+        return html.escape(str(v))
+
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in [frame.index.name or "", *frame])
+    rows = [
+        "<tr>"
+        + f"<td>{html.escape(str(idx))}</td>"
+        + "".join(f"<td>{cell(v)}</td>" for v in row)
+        + "</tr>"
+        for idx, row in zip(frame.index, frame.itertuples(index=False), strict=True)
+    ]
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+
+
+def render_report(
+    *,
+    title: str,
+    subtitle: str,
+    headline: pd.DataFrame,
+    headline_note: str,
+    figures: Sequence[FigureEntry],
+    metrics: pd.DataFrame,
+    config_yaml: str,
+    provenance: Mapping[str, object],
+) -> str:
+    """The report page as a string (module docstring)."""
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title>",
+        f"<style>{_CSS}</style>",
+        f"<script>{_SCRIPT}</script>",
+        "</head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        f'<p class="sub">{html.escape(subtitle)}</p>',
+        "<h2>Headline</h2>",
+        _table(headline),
+        f'<p class="note">{html.escape(headline_note)}</p>',
+    ]
+    if figures:
+        parts.append("<h2>Figures</h2>")
+        for f in figures:
+            parts.append(
+                f"<figure><h3>{html.escape(f.title)}</h3>{_img_tag(f.path, f.title)}"
+                f"<figcaption>{html.escape(f.caption)}</figcaption></figure>"
+            )
+    parts += [
+        "<h2>All metrics</h2>",
+        _table(metrics),
+        "<h2>Config</h2>",
+        f"<pre>{html.escape(config_yaml)}</pre>",
+        "<h2>Provenance</h2>",
+        "<table><tbody>",
+        *(
+            f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(str(v))}</td></tr>"
+            for k, v in provenance.items()
+        ),
+        "</tbody></table>",
+        "</body></html>",
+    ]
+    return "\n".join(parts)
