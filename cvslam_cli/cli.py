@@ -513,7 +513,13 @@ def do_mosaic(
         truth = ""
         if m.truth is not None:
             truth = (
-                f"; vs true ground: shift {m.truth['shift_m']:.2f} m, NCC {m.truth['ncc']:.2f}, "
+                "; vs true ground: "
+                + (
+                    f"shift {m.truth['shift_m']:.2f} m"
+                    if m.truth["shift_found"]
+                    else "no clear match"
+                )
+                + f", NCC {m.truth['ncc']:.2f}, "
                 f"{100 * m.truth['tiles_matched']:.0f} % of tiles matched, local shift "
                 f"{m.truth['tile_shift_median_px']:.1f} px"
             )

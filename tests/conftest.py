@@ -46,3 +46,32 @@ def cvslam(capsys: pytest.CaptureFixture[str]):
         return CliResult(code, captured.out, captured.err)
 
     return run
+
+
+@pytest.fixture(scope="session")
+def small_image_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """8 s of two simulated UAVs with images (376 x 240), extracted and fused (cooperative
+    NH-infinity), made once per session; tests copy it before changing anything."""
+    from tests.sim.test_stage import small_uav_scenario
+
+    tmp = tmp_path_factory.mktemp("small_image_run")
+    camera = {"width": 376, "height": 240, "fx": 225.0, "fy": 225.0, "cx": 187.5, "cy": 119.5}
+    sc = small_uav_scenario(
+        tmp,
+        duration_s=8.0,
+        mode="images",
+        **{f"vehicles.{v}.camera.{k}": x for v in ("uav1", "uav2") for k, x in camera.items()},
+        **{"terrain.texture_px_per_m": 4.0},
+    )
+    run = tmp / "run"
+    steps = (
+        lambda: ["-q", "simulate", str(sc), "-o", str(run)],
+        lambda: ["-q", "extract", *map(str, sorted(run.glob("*.mcap"))), "-o", str(run)],
+        lambda: ["-q", "fuse", str(run)],
+    )
+    for step in steps:
+        args = step()
+        with pytest.raises(SystemExit) as exc:
+            main(args)
+        assert exc.value.code in (0, None), args
+    return run

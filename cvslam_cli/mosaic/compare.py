@@ -93,17 +93,25 @@ class Alignment:
     """Global shift (px) and score; per tile: how many tiles had texture to match, the
     fraction of them whose best match scores >= 0.5 inside the search window (not on its
     edge: "matched"), and the median and 90th percentile of the matched tiles' shift
-    magnitudes (px): the local misalignment."""
+    magnitudes (px): the local misalignment. `shift_found`: the global best match scores
+    >= 0.5 inside the +-`search_px` window; otherwise the mosaic is too far off (or too
+    smeared) for its shift to mean anything."""
 
     shift_px: tuple[float, float]
     score: float
+    search_px: int
     tiles: int
     tile_shift_median_px: float
     tile_shift_p90_px: float
     tiles_matched: float
 
-    def as_dict(self, gsd_m: float) -> dict[str, float | int | list[float]]:
+    @property
+    def shift_found(self) -> bool:
+        return self.score >= 0.5 and max(map(abs, self.shift_px)) < self.search_px - 0.5
+
+    def as_dict(self, gsd_m: float) -> dict[str, float | int | bool | list[float]]:
         return {
+            "shift_found": self.shift_found,
             "shift_px": [round(self.shift_px[0], 2), round(self.shift_px[1], 2)],
             "shift_m": round(float(np.hypot(*self.shift_px)) * gsd_m, 3),
             "ncc": round(self.score, 4),
@@ -157,6 +165,7 @@ def align_to_reference(
     return Alignment(
         shift_px=(dr, dc),
         score=score,
+        search_px=max_shift_px,
         tiles=scored,
         tile_shift_median_px=float(np.median(sh)) if sh.size else float("nan"),
         tile_shift_p90_px=float(np.percentile(sh, 90)) if sh.size else float("nan"),

@@ -26,6 +26,7 @@ ground is; the fit refuses steeper ones (walls, building faces).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,6 +60,15 @@ class GroundModel:
     residual_rms_m: float
     threshold_m: float = float("nan")
 
+    @functools.cached_property
+    def _padded_abc(self) -> F64:
+        """The region planes with a ring of global planes around them (I + 2, J + 2, 3)."""
+        ni, nj = self.local.shape
+        abc = np.empty((ni + 2, nj + 2, 3))
+        abc[:] = self.global_abc
+        abc[1:-1, 1:-1] = self.region_abc
+        return abc
+
     @property
     def local_regions(self) -> int:
         return int(self.local.sum())
@@ -72,10 +82,7 @@ class GroundModel:
         if not self.local.any():
             return z
         ni, nj = self.local.shape
-        # padded table: a ring of global planes around the regions
-        abc = np.empty((ni + 2, nj + 2, 3))
-        abc[:] = self.global_abc
-        abc[1:-1, 1:-1] = self.region_abc
+        abc = self._padded_abc
         finite = np.isfinite(n) & np.isfinite(e)
         fi = (np.where(finite, n, 0.0) - self.origin_ne[0]) / self.region_m - 0.5 + 1.0
         fj = (np.where(finite, e, 0.0) - self.origin_ne[1]) / self.region_m - 0.5 + 1.0

@@ -13,7 +13,6 @@ import pytest
 import yaml
 
 from cvslam_cli.io.mosaic_files import read_world_file
-from tests.sim.test_stage import small_uav_scenario
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -23,31 +22,8 @@ def _ok(res) -> None:
 
 
 @pytest.fixture(scope="module")
-def fused_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Simulate 8 s of two UAVs with images, extract and fuse them (made once)."""
-    from cvslam_cli.cli import main
-
-    tmp = tmp_path_factory.mktemp("mosaic")
-    camera = {"width": 376, "height": 240, "fx": 225.0, "fy": 225.0, "cx": 187.5, "cy": 119.5}
-    sc = small_uav_scenario(
-        tmp,
-        duration_s=8.0,
-        mode="images",
-        **{f"vehicles.{v}.camera.{k}": x for v in ("uav1", "uav2") for k, x in camera.items()},
-        **{"terrain.texture_px_per_m": 4.0},
-    )
-    run = tmp / "run"
-    steps = (
-        lambda: ["-q", "simulate", str(sc), "-o", str(run)],
-        lambda: ["-q", "extract", *map(str, sorted(run.glob("*.mcap"))), "-o", str(run)],
-        lambda: ["-q", "fuse", str(run)],
-    )
-    for step in steps:
-        args = step()
-        with pytest.raises(SystemExit) as exc:
-            main(args)
-        assert exc.value.code in (0, None), args
-    return run
+def fused_run(small_image_run: Path) -> Path:
+    return small_image_run
 
 
 def _stage_summary(run: Path, name: str) -> dict:

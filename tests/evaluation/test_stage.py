@@ -1,0 +1,133 @@
+"""`cvslam eval` and `cvslam run` end to end on a small simulated run: outputs, metrics that
+agree with a direct computation, ground truth from files, skipping, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from cvslam_cli.evaluation.metrics import ate
+from cvslam_cli.io.trajectory import read_tum, write_kitti
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+
+def _ok(res) -> None:
+    assert res.code == 0, res.err
+
+
+@pytest.fixture(scope="module")
+def compared_run(small_image_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small run with the single and EKF comparisons fused too."""
+    from cvslam_cli.cli import main
+
+    run = tmp_path_factory.mktemp("eval") / "run"
+    shutil.copytree(small_image_run, run)
+    for extra in (["--single"], ["--filter", "ekf"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["-q", "fuse", str(run), *extra])
+        assert exc.value.code in (0, None)
+    return run
+
+
+def test_eval_writes_metrics_figures_and_report(compared_run, tmp_path, cvslam):
+    run = tmp_path / "run"
+    shutil.copytree(compared_run, run)
+    res = cvslam("eval", run)
+    _ok(res)
+    out = run / "eval"
+    for name in ("metrics.json", "metrics.csv", "headline.csv", "report.html"):
+        assert (out / name).is_file()
+    assert not (run / "eval.partial").exists()
+    m = pd.read_csv(out / "metrics.csv")
+    labels = set(m["estimate"])
+    assert labels == {"cooperative NH-inf", "single NH-inf", "cooperative EKF", "dead reckoning"}
+    assert set(m["vehicle"]) == {"uav1", "uav2"}
+    # the numbers are the metrics module's on the files (ATE, no alignment)
+    truth = read_tum(run / "truth" / "uav1.tum")
+    row = m[(m["estimate"] == "cooperative NH-inf") & (m["vehicle"] == "uav1")].iloc[0]
+    direct = ate(truth, read_tum(run / "fuse" / "uav1.tum"))
+    assert row["ate_rmse_m"] == pytest.approx(direct.rmse, rel=1e-5)
+    assert row["ate_max_m"] == pytest.approx(direct.max, rel=1e-5)
+    # the fused estimates are far better than dead reckoning; NEES only where covariances are
+    for v in ("uav1", "uav2"):
+        mv = m[m["vehicle"] == v].set_index("estimate")
+        assert mv.loc["cooperative NH-inf", "ate_rmse_m"] < mv.loc["dead reckoning", "ate_rmse_m"]
+        assert np.isfinite(mv.loc["cooperative NH-inf", "nees_mean"])
+        assert np.isnan(mv.loc["dead reckoning", "nees_mean"])
+        assert 0 < mv.loc["cooperative NH-inf", "rpe_drift_pct"] < 100
+    headline = pd.read_csv(out / "headline.csv", index_col=0)
+    assert headline.loc["uav1", "cooperative NH-inf"] == pytest.approx(direct.rmse, rel=1e-5)
+    assert "cooperative NH-inf" in res.out and "uav2" in res.out  # printed table
+    js = json.loads((out / "metrics.json").read_text())
+    assert js["align"] == "none" and len(js["estimates"]) == len(m)
+    figs = {p.stem for p in (out / "figures").glob("*.png")}
+    assert {"headline", "position_uav1", "top_view", "landmark_uncertainty", "nees"} <= figs
+    assert {"error_coop_uav1", "error_filters_uav2", "feature_counts"} <= figs
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") == len(figs)
+    # rerun: skipped; --align sim3 is another config
+    res = cvslam("eval", run)
+    assert res.code == 0 and "up to date" in res.err
+    res = cvslam("eval", run, "--align", "sim3")
+    assert res.code == 1 and "eval.align" in res.err
+    _ok(cvslam("-q", "eval", run, "--align", "sim3", "--force"))
+    m3 = pd.read_csv(out / "metrics.csv").set_index(["estimate", "vehicle"])
+    # an aligned error can only be smaller
+    assert (
+        m3.loc[("dead reckoning", "uav1"), "ate_rmse_m"]
+        <= m.set_index(["estimate", "vehicle"]).loc[("dead reckoning", "uav1"), "ate_rmse_m"]
+    )
+
+
+def test_ground_truth_from_files(compared_run, tmp_path, cvslam):
+    run = tmp_path / "run"
+    shutil.copytree(compared_run, run)
+    gt = tmp_path / "gt"
+    gt.mkdir()
+    shutil.copy(run / "truth" / "uav1.tum", gt / "uav1.tum")
+    # KITTI (no stamps: the estimate is matched by index, so give it as many poses)
+    truth2 = read_tum(run / "truth" / "uav2.tum")
+    write_kitti(gt / "uav2_kitti.txt", truth2)
+    _ok(cvslam("-q", "eval", run, "--gt", gt / "uav1.tum"))
+    m = pd.read_csv(run / "eval" / "metrics.csv")
+    assert set(m["vehicle"]) == {"uav1"}  # only the given truth
+    res = cvslam("eval", run, "--gt", gt / "uav2_kitti.txt", "--force")
+    assert res.code == 1 and "uav2_kitti" in res.err and "VEHICLE=FILE" in res.err
+    res = cvslam("eval", run, "--gt", f"uav9={gt / 'uav1.tum'}", "--force")
+    assert res.code == 1 and "uav9" in res.err
+    res = cvslam("eval", run, "--gt", f"uav1={gt / 'missing.tum'}", "--force")
+    assert res.code == 1 and "missing.tum" in res.err
+
+
+def test_eval_needs_a_fuse_run(tmp_path, cvslam):
+    res = cvslam("eval", tmp_path / "empty")
+    assert res.code == 1 and "cvslam fuse" in res.err and "Traceback" not in res.err
+
+
+def test_run_makes_every_stage_and_skips_them_when_unchanged(small_image_run, tmp_path, cvslam):
+    logs = sorted(small_image_run.glob("*.mcap"))
+    sim = tmp_path / "sim"
+    sim.mkdir()
+    for p in logs:
+        shutil.copy(p, sim / p.name)
+    shutil.copytree(small_image_run / "truth", sim / "truth")
+    run = tmp_path / "run"
+    res = cvslam("run", *sorted(sim.glob("*.mcap")), "-o", run, "--set", "run.comparisons=[single]")
+    _ok(res)
+    stages = yaml.safe_load((run / "run.yaml").read_text())["stages"]
+    assert set(stages) == {"extract", "fuse", "fuse_single", "mosaic", "eval"}
+    assert (run / "eval" / "report.html").is_file() and (run / "mosaic" / "all.png").is_file()
+    assert "single NH-inf" in res.out and "cooperative NH-inf" in res.out
+    finished = {k: v["finished"] for k, v in stages.items()}
+    res = cvslam("run", *sorted(sim.glob("*.mcap")), "-o", run, "--set", "run.comparisons=[single]")
+    _ok(res)
+    assert res.err.count("up to date") == 5
+    stages = yaml.safe_load((run / "run.yaml").read_text())["stages"]
+    assert {k: v["finished"] for k, v in stages.items()} == finished
