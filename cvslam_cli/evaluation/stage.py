@@ -198,6 +198,11 @@ def _metrics(e: _Estimate, truth: PoseTable, cfg: EvalConfig) -> dict[str, Any]:
         "ate_median_m": a.median,
         "ate_max_m": a.max,
     }
+    try:  # evo_rpe's default: consecutive poses (delta 1 frame)
+        r1 = mtr.rpe(truth, e.table, 1, "frames", align=cfg.align, max_diff_ns=max_diff)
+        row["rpe_frame_rmse_m"], row["rpe_frame_mean_m"] = r1.rmse, r1.mean
+    except ValueError:
+        row["rpe_frame_rmse_m"] = row["rpe_frame_mean_m"] = float("nan")
     row["final_error_m"], row["final_drift_pct"] = mtr.final_drift(
         truth, e.table, cfg.align, max_diff_ns=max_diff
     )
@@ -443,8 +448,8 @@ def run(
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     entries = _figures(run_dir, tmp, estimates, truth, metrics, headline, cfg.eval)
-    metrics.to_csv(tmp / "metrics.csv", index=False, float_format="%.6g")
-    headline.to_csv(tmp / "headline.csv", float_format="%.6g")
+    metrics.to_csv(tmp / "metrics.csv", index=False)  # full precision (repr)
+    headline.to_csv(tmp / "headline.csv")
     provenance = {
         "run directory": str(run_dir.resolve()),
         "ground truth": truth_source,
@@ -493,7 +498,13 @@ def run(
         "eval",
         plan,
         outputs,
-        {"headline_ate_rmse_m": metrics_json["headline_ate_rmse_m"], "figures": len(entries)},
+        {
+            "headline_ate_rmse_m": {
+                v: {k: None if x is None else round(x, 4) for k, x in row.items()}
+                for v, row in metrics_json["headline_ate_rmse_m"].items()
+            },
+            "figures": len(entries),
+        },
         wall,
     )
     return EvalSummary(run_dir, out_dir, False, headline, metrics, wall)
@@ -501,7 +512,7 @@ def run(
 
 def _num(x: Any) -> Any:
     if isinstance(x, (float, np.floating)):
-        return None if not np.isfinite(x) else round(float(x), 6)
+        return None if not np.isfinite(x) else float(x)
     if isinstance(x, np.integer):
         return int(x)
     return x

@@ -131,3 +131,41 @@ def test_run_makes_every_stage_and_skips_them_when_unchanged(small_image_run, tm
     assert res.err.count("up to date") == 5
     stages = yaml.safe_load((run / "run.yaml").read_text())["stages"]
     assert {k: v["finished"] for k, v in stages.items()} == finished
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("align", ["none", "se3", "sim3"])
+def test_cvslam_eval_equals_evo_on_kitti_00(shared_data, tmp_path, cvslam, align):
+    """`cvslam eval` on ORB-SLAM's KITTI 00 trajectory (as a run's fuse output) with the
+    KITTI ground truth file: its ATE and its RPE (consecutive poses) equal evo's APE / RPE
+    (`-r trans_part`, same alignment) on the original files to 1e-6 relative."""
+    import os
+
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    from evo.core import metrics
+    from evo.tools import file_interface
+
+    from cvslam_cli.io.trajectory import read_kitti, write_tum
+
+    ref_file = shared_data / "reference_trajectories" / "KITTI_00_gt.txt"
+    est_file = shared_data / "reference_trajectories" / "KITTI_00_ORB.txt"
+    run = tmp_path / "run"
+    (run / "fuse").mkdir(parents=True)
+    write_tum(run / "fuse" / "car.tum", read_kitti(est_file))
+    _ok(cvslam("-q", "eval", run, "--gt", f"car={ref_file}", "--align", align))
+    row = pd.read_csv(run / "eval" / "metrics.csv").set_index("estimate").loc["cooperative NH-inf"]
+
+    ref = file_interface.read_kitti_poses_file(str(ref_file))
+    est = file_interface.read_kitti_poses_file(str(est_file))
+    if align != "none":
+        est.align(ref, correct_scale=align == "sim3")
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    rpe = metrics.RPE(metrics.PoseRelation.translation_part, 1, metrics.Unit.frames)
+    rpe.process_data((ref, est))
+    a, r = ape.get_all_statistics(), rpe.get_all_statistics()
+    for ours, theirs in (
+        ("ate_rmse_m", a["rmse"]), ("ate_mean_m", a["mean"]), ("ate_median_m", a["median"]),
+        ("ate_max_m", a["max"]), ("rpe_frame_rmse_m", r["rmse"]), ("rpe_frame_mean_m", r["mean"]),
+    ):  # fmt: skip
+        assert row[ours] == pytest.approx(theirs, rel=1e-6), (ours, row[ours], theirs)
