@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.install-stamp
 SHARED_DATA ?= $(if $(CVSLAM_SHARED_DATA),$(CVSLAM_SHARED_DATA),../shared/data)
 DEMO_DIR ?= runs/demo
 
-.PHONY: install test lint bench demo clean
+.PHONY: install test lint bench demo clean check-report
 
 install: $(STAMP)
 
@@ -32,3 +32,7 @@ demo: install
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache
+
+# Render the demo's report in headless Chromium and check every image loaded (needs chromium).
+check-report: install
+	$(BIN)/python scripts/check_report.py $(DEMO_DIR)/run/eval/report.html

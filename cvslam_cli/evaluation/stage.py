@@ -270,7 +270,6 @@ def _figures(
     out: Path,
     estimates: list[_Estimate],
     truth: dict[str, PoseTable],
-    metrics: pd.DataFrame,
     headline: pd.DataFrame,
     cfg: EvalConfig,
 ) -> list[FigureEntry]:
@@ -357,21 +356,20 @@ def _figures(
                     f"{v}: position error, {what}",
                     "Position error against the ground truth over time; RMSE in the legend.",
                 )
-    nees = {}
-    t_nees = None
+    nees_t: dict[str, np.ndarray] = {}
+    nees: dict[str, np.ndarray] = {}
     for v in vehicles:
         e = by.get((main_run, v)) if main_run else None
         if e is None or e.cov is None:
             continue
         ri, ei = mtr.associate(truth[v], e.table, int(cfg.max_time_diff_ms * 1e6))
         nees[v] = mtr.nees_position(truth[v].p_m[ri], e.table.p_m[ei], e.cov[ei, :3, :3])
-        t_nees = (e.table.stamps_ns[ei] - t0) * 1e-9
-        nees[v] = (t_nees, nees[v])
+        nees_t[v] = (e.table.stamps_ns[ei] - t0) * 1e-9
     if nees:
         add(
             figs.nees_over_time(
-                {v: tv[0] for v, tv in nees.items()},
-                {v: tv[1] for v, tv in nees.items()},
+                nees_t,
+                nees,
                 _nees_band(cfg),
                 3,
             ),
@@ -447,7 +445,7 @@ def run(
     tmp = out_dir.with_name("eval.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    entries = _figures(run_dir, tmp, estimates, truth, metrics, headline, cfg.eval)
+    entries = _figures(run_dir, tmp, estimates, truth, headline, cfg.eval)
     metrics.to_csv(tmp / "metrics.csv", index=False)  # full precision (repr)
     headline.to_csv(tmp / "headline.csv")
     provenance = {

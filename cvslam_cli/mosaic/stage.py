@@ -34,7 +34,6 @@ from tqdm import tqdm
 from cvslam_cli.config import Config, MosaicConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.stage import find_logs
-from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import MapTable, read_map_csv
@@ -146,7 +145,8 @@ def _camera_height(ground: GroundModel, c: np.ndarray) -> float:
     return float(ground.z_at(c[0], c[1]) - c[2])
 
 
-def _limits(cfg: MosaicConfig, cam: CameraModel, height_m: float) -> ViewLimits:
+def _limits(cfg: MosaicConfig, height_m: float) -> ViewLimits:
+    """What a camera `height_m` above the ground contributes (range default: 20 x height)."""
     rng = cfg.max_range_m or 20.0 * max(height_m, 0.1)
     return ViewLimits(rng, cfg.min_depression_deg, cfg.border_px)
 
@@ -272,7 +272,7 @@ def run(
         if not heights:
             log.warning("mosaic: %s: no pose at any of its frames; no images used", v)
             continue
-        limits[v] = _limits(mc, cam, float(np.median(heights)))
+        limits[v] = _limits(mc, float(np.median(heights)))
         step = max(1, int(ok.sum()) // 100)
         for k in np.flatnonzero(ok):
             box = footprint_box(cam, T_nav_cam[k], ground, limits[v])
@@ -282,7 +282,10 @@ def run(
                 gsds.append(image_gsd_m(cam, T_nav_cam[k], ground, limits[v]))
     if not frames:
         raise CvslamError(f"{run_dir}: no frame sees the ground; nothing to mosaic")
-    gsd = mc.gsd_m or _two_digits(float(np.nanmedian(gsds)))
+    finite = [g for g in gsds if np.isfinite(g)]
+    if not mc.gsd_m and not finite:
+        raise CvslamError(f"{run_dir}: no ground resolution from the images; give --gsd")
+    gsd = mc.gsd_m or _two_digits(float(np.median(finite)))
     box_all = _union([f.box_ne for f in frames])
     grid = CanvasGrid.covering(box_all, gsd)
     if grid.megapixels > mc.max_canvas_mpx:
