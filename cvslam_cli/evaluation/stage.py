@@ -73,6 +73,7 @@ class _Estimate:
     vehicle: str
     table: PoseTable
     cov: np.ndarray | None  # (K, 6, 6) at table's stamps, or None
+    path: Path
 
 
 # --------------------------------------------------------------------------- inputs
@@ -169,12 +170,12 @@ def _estimates(run_dir: Path, runs: list[str], vehicles: list[str]) -> list[_Est
                 st, c = load_pose_covariances(cov_path)
                 if len(st) == len(table) and np.array_equal(st, table.stamps_ns):
                     cov = c
-            out.append(_Estimate(r, RUN_LABELS[r], v, table, cov))
+            out.append(_Estimate(r, RUN_LABELS[r], v, table, cov, path))
     dr_dir = run_dir / runs[0]
     for v in vehicles:
         path = dr_dir / f"{v}_deadreckoning.tum"
         if path.exists():
-            out.append(_Estimate("deadreckoning", DR_LABEL, v, read_tum(path), None))
+            out.append(_Estimate("deadreckoning", DR_LABEL, v, read_tum(path), None, path))
     return out
 
 
@@ -438,7 +439,15 @@ def run(
         old = pd.read_csv(out_dir / "headline.csv", index_col=0)
         return EvalSummary(run_dir, out_dir, True, old, pd.read_csv(out_dir / "metrics.csv"))
     estimates = [e for e in _estimates(run_dir, runs, vehicles) if e.vehicle in truth]
-    rows = [_metrics(e, truth[e.vehicle], cfg.eval) for e in estimates]
+    rows = []
+    for e in estimates:
+        try:
+            rows.append(_metrics(e, truth[e.vehicle], cfg.eval))
+        except ValueError as exc:  # no matching stamps, degenerate alignment
+            raise CvslamError(
+                f"{e.path}: cannot be compared with the ground truth of {e.vehicle} "
+                f"({truth_source}): {exc}"
+            ) from None
     metrics = pd.DataFrame(rows)
     headline = _headline(metrics)
 

@@ -104,6 +104,17 @@ def test_ground_truth_from_files(compared_run, tmp_path, cvslam):
     assert res.code == 1 and "uav9" in res.err
     res = cvslam("eval", run, "--gt", f"uav1={gt / 'missing.tum'}", "--force")
     assert res.code == 1 and "missing.tum" in res.err
+    # truth in another time base: nothing associates -> one line naming both
+    shifted = read_tum(gt / "uav1.tum")
+    from cvslam_cli.io.trajectory import PoseTable, write_tum
+
+    write_tum(
+        gt / "late.tum",
+        PoseTable(shifted.stamps_ns + 10**12, shifted.p_m, shifted.q_xyzw),
+    )
+    res = cvslam("eval", run, "--gt", f"uav1={gt / 'late.tum'}", "--force")
+    assert res.code == 1 and "Traceback" not in res.err
+    assert "fuse/uav1.tum" in res.err and "late.tum" in res.err and "timestamps" in res.err
 
 
 def test_eval_needs_a_fuse_run(tmp_path, cvslam):
