@@ -12,8 +12,10 @@ and a downward camera at 10 Hz sees each ground point in dozens to hundreds of f
   by the Gaussian pyramid of its mask; low frequencies (exposure) are blended over wide
   zones, detail over narrow ones, so seams vanish without blurring detail.
 
-`Compositor.feed` adds one image at its canvas position; the accumulators are the size of the
-canvas (feather: channels + 1 floats per pixel; multiband: 4/3 of that for the pyramid), so
+`Compositor.feed` adds one image at its canvas position (`prepare` + `add`: an image
+prepared once can be added to several canvases, e.g. a vehicle's and the merged one, at
+offsets that are multiples of `unit`); the accumulators are the size of the canvas
+(feather: channels + 1 floats per pixel; multiband: 4/3 of that for the pyramid), so
 memory depends on the canvas, never on how many images are fed.
 """
 
@@ -51,6 +53,18 @@ def feather_weights(mask: NDArray[np.uint8], sharpness: float) -> NDArray[np.flo
     padded = cv2.copyMakeBorder(mask, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     w = cv2.distanceTransform(padded, cv2.DIST_L1, 3)[1:-1, 1:-1]
     return np.minimum(w * np.float32(sharpness), np.float32(1.0))
+
+
+@dataclass(frozen=True, eq=False)
+class Contribution:
+    """One image ready to accumulate: per level k (one for feather, bands + 1 for multiband)
+    the weighted image (h_k, w_k, channels) float32 and the weights (h_k, w_k); level 0's
+    top-left pixel at (row0, col0) of the canvas it was prepared on."""
+
+    levels: tuple[tuple[NDArray[np.float32], NDArray[np.float32]], ...]
+    row0: int
+    col0: int
+    channels: int
 
 
 class Compositor:
@@ -100,9 +114,25 @@ class Compositor:
         img = img.astype(np.float32)
         return img[:, :, None] if img.ndim == 2 else img
 
+    @property
+    def unit(self) -> int:
+        """Canvas positions a prepared contribution can be moved by: multiples of this (the
+        coarsest pyramid level's pixel for multiband, 1 for feather)."""
+        return 1 << self.bands
+
     def feed(self, image: NDArray, mask: NDArray[np.uint8], row0: int, col0: int) -> None:
         """Add `image` (h, w[, 3]) uint8 with `mask` (h, w) uint8 (255 valid) whose top-left
         pixel goes to canvas (row0, col0); the patch must lie inside the canvas."""
+        contribution = self.prepare(image, mask, row0, col0)
+        if contribution is not None:
+            self.add(contribution)
+
+    def prepare(
+        self, image: NDArray, mask: NDArray[np.uint8], row0: int, col0: int
+    ) -> Contribution | None:
+        """The weighted image (feather) or weighted pyramid (multiband) of a patch placed at
+        (row0, col0) of this canvas, to `add` here and to other canvases (the same work
+        done once); None when the mask is empty."""
         h, w = mask.shape
         if row0 < 0 or col0 < 0 or row0 + h > self.shape[0] or col0 + w > self.shape[1]:
             raise ValueError(
@@ -110,21 +140,45 @@ class Compositor:
                 f"{self.shape[1]}x{self.shape[0]}"
             )
         if not mask.any():
-            return
+            return None
         img = self._conform(image)
         if self.kind == "feather":
             wgt = feather_weights(mask, self.sharpness)
-            self._acc[0][row0 : row0 + h, col0 : col0 + w] += img * wgt[:, :, None]
-            self._wsum[0][row0 : row0 + h, col0 : col0 + w] += wgt
-        else:
-            self._feed_multiband(img, mask, row0, col0)
+            return Contribution(((img * wgt[:, :, None], wgt),), row0, col0, self.channels)
+        return self._prepare_multiband(img, mask, row0, col0)
+
+    def add(self, c: Contribution, row_offset: int = 0, col_offset: int = 0) -> None:
+        """Accumulate a contribution prepared on a canvas whose origin is at (row_offset,
+        col_offset) of this one (multiples of `unit`); what falls outside is dropped."""
+        if len(c.levels) != self.bands + 1:
+            raise ValueError(f"a contribution of {len(c.levels)} levels to a {self.kind} canvas")
+        if row_offset % self.unit or col_offset % self.unit:
+            raise ValueError(f"offset ({row_offset}, {col_offset}) not a multiple of {self.unit}")
+        if not self.channels:
+            self._allocate(c.channels)
+        if c.channels != self.channels:
+            raise ValueError(
+                f"{c.channels}-channel contribution to a {self.channels}-channel canvas"
+            )
+        for k, (acc_part, w_part) in enumerate(c.levels):
+            s = 1 << k
+            r0, c0 = (c.row0 - row_offset) // s, (c.col0 - col_offset) // s
+            H, W = self._wsum[k].shape
+            h, w = w_part.shape
+            a0, b0 = max(0, -r0), max(0, -c0)
+            a1, b1 = min(h, H - r0), min(w, W - c0)
+            if a1 <= a0 or b1 <= b0:
+                return
+            dst = (slice(r0 + a0, r0 + a1), slice(c0 + b0, c0 + b1))
+            self._acc[k][dst] += acc_part[a0:a1, b0:b1]
+            self._wsum[k][dst] += w_part[a0:a1, b0:b1]
         self.fed += 1
 
-    def _feed_multiband(
+    def _prepare_multiband(
         self, img: NDArray[np.float32], mask: NDArray[np.uint8], row0: int, col0: int
-    ) -> None:
-        unit = 1 << self.bands
-        H, W = self._wsum[0].shape
+    ) -> Contribution:
+        unit = self.unit
+        H, W = -(-self.shape[0] // unit) * unit, -(-self.shape[1] // unit) * unit
         # the patch grown by a margin and aligned to the coarsest level's pixels
         r0 = max(0, (row0 - unit) // unit * unit)
         c0 = max(0, (col0 - unit) // unit * unit)
@@ -139,18 +193,16 @@ class Compositor:
         m[sl] = valid
         # outside the mask: a smooth continuation of the content (no artificial edge at the
         # mask border for the Laplacian levels to carry across it)
-        big = _extrapolate(big, m)
-        gauss = big
+        gauss = _extrapolate(big, m)
+        levels = []
         for k in range(self.bands + 1):
             down = _down(gauss) if k < self.bands else None
             lap = gauss - _up(down, gauss.shape) if down is not None else gauss
-            s = 1 << k
-            sr, sc = slice(r0 // s, r0 // s + m.shape[0]), slice(c0 // s, c0 // s + m.shape[1])
-            self._acc[k][sr, sc] += lap * m[:, :, None]
-            self._wsum[k][sr, sc] += m
+            levels.append((lap * m[:, :, None], m))
             if down is not None:
                 gauss = down
                 m = cv2.pyrDown(m)
+        return Contribution(tuple(levels), r0, c0, self.channels)
 
     # -- result -------------------------------------------------------------------------
 

@@ -302,11 +302,15 @@ def run(
         )
         gsd = coarser
         grid = CanvasGrid.covering(box_all, gsd)
+    # each vehicle's canvas: the part of the merged one its frames cover, its origin on the
+    # multiples of the blender's unit so that an image prepared once is added to both
+    unit = 1 << mc.multiband_bands if mc.blend == "multiband" else 1
     sub_rois = {}
     for v in {f.vehicle for f in frames}:
         roi = grid.roi_of(_union([f.box_ne for f in frames if f.vehicle == v]))
         assert roi is not None
-        sub_rois[v] = roi
+        r0, c0 = roi[0] // unit * unit, roi[1] // unit * unit
+        sub_rois[v] = (r0, c0, roi[2] + roi[0] - r0, roi[3] + roi[1] - c0)
 
     def compositor(shape: tuple[int, int]) -> Compositor:
         return Compositor(shape, mc.blend, sharpness=mc.feather_sharpness, bands=mc.multiband_bands)
@@ -341,9 +345,13 @@ def run(
                 )
                 r0, c0 = roi[0], roi[1]
                 vr0, vc0 = sub_rois[f.vehicle][:2]
-                comps[f.vehicle].feed(patch, mask, r0 - vr0, c0 - vc0)
-                if merged is not None:
-                    merged.feed(patch, mask, r0, c0)
+                if merged is None:
+                    comps[f.vehicle].feed(patch, mask, r0 - vr0, c0 - vc0)
+                else:
+                    contribution = merged.prepare(patch, mask, r0, c0)
+                    if contribution is not None:
+                        merged.add(contribution)
+                        comps[f.vehicle].add(contribution, vr0, vc0)
                 fed += 1
             bar.update(1)
     t_fed = time.perf_counter() - t_images

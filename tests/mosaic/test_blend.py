@@ -688,3 +688,31 @@ def test_aerial_mosaic_has_no_seams(
         images, masks = [aerial.images[k] for k in order], [aerial.masks[k] for k in order]
         under = probe.under_ratio(blended, images, masks)
         assert under < 1.12, f"{kind}, order {order}: under_ratio {under:.2f}"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_contribution_prepared_once_adds_to_a_sub_canvas_as_feeding_it(kind: str):
+    """`prepare` on the big canvas + `add` at the sub-canvas's offset gives the sub-canvas
+    what feeding it directly gives (exactly for feather; for multiband wherever the pyramid
+    is not cut by the sub-canvas's edge), and offsets off the unit are refused."""
+    rng = np.random.default_rng(11)
+    big, sub = Compositor((256, 320), kind, bands=4), Compositor((160, 192), kind, bands=4)
+    direct = Compositor((160, 192), kind, bands=4)
+    off_r, off_c = 48, 64  # multiples of 16 = 2^4
+    for _ in range(6):
+        h, w = int(rng.integers(40, 90)), int(rng.integers(40, 90))
+        r, c = int(rng.integers(off_r, off_r + 160 - h)), int(rng.integers(off_c, off_c + 192 - w))
+        img = rng.integers(0, 255, (h, w), dtype=np.uint8)
+        mask = np.full((h, w), 255, np.uint8)
+        contribution = big.prepare(img, mask, r, c)
+        big.add(contribution)
+        sub.add(contribution, off_r, off_c)
+        direct.feed(img, mask, r - off_r, c - off_c)
+    a, b = sub.result(crop=False), direct.result(crop=False)
+    assert np.array_equal(a.mask, b.mask)
+    inner = (slice(32, -32), slice(32, -32))
+    err = np.abs(a.image.astype(int) - b.image.astype(int))[inner][a.mask[inner]]
+    assert err.max() <= (0 if kind == "feather" else 2)
+    if kind == "multiband":
+        with pytest.raises(ValueError, match="multiple of 16"):
+            sub.add(contribution, 8, 0)
