@@ -413,17 +413,20 @@ def do_fuse(
         return
     write_resolved_config(cfg, summary.out_dir / "fuse.yaml")
     for name, v in summary.vehicles.items():
+        errors = (
+            f"final position error {v.final_error_m:.2f} m (dead reckoning "
+            f"{v.final_error_deadreckoning_m:.2f} m), RMSE {v.rmse_m:.2f} m "
+            f"({v.rmse_deadreckoning_m:.2f} m)"
+            if v.rmse_m == v.rmse_m  # NaN: the logs have no ground truth
+            else "no ground truth to compare with"
+        )
         log.info(
-            "%s (%s): %d frames, %.0f m; final position error %.2f m (dead reckoning %.2f m), "
-            "RMSE %.2f m (%.2f m), final sigma %.2f m, %d loop closure(s)",
+            "%s (%s): %d frames, %.0f m; %s, final sigma %.2f m, %d loop closure(s)",
             name,
             v.model,
             v.frames,
             v.distance_m,
-            v.final_error_m,
-            v.final_error_deadreckoning_m,
-            v.rmse_m,
-            v.rmse_deadreckoning_m,
+            errors,
             v.final_sigma_m,
             v.loop_closures,
         )

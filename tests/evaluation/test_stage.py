@@ -180,3 +180,32 @@ def test_cvslam_eval_equals_evo_on_kitti_00(shared_data, tmp_path, cvslam, align
         ("ate_max_m", a["max"]), ("rpe_frame_rmse_m", r["rmse"]), ("rpe_frame_mean_m", r["mean"]),
     ):  # fmt: skip
         assert row[ours] == pytest.approx(theirs, rel=1e-6), (ours, row[ours], theirs)
+
+
+def test_run_without_ground_truth_stops_before_eval(small_image_run, tmp_path, cvslam):
+    """Logs with no ground truth (here: its topic mapped away): every stage that needs none
+    runs, eval is skipped with a message saying how to give the truth."""
+    from cvslam_cli.geometry.rotations import matrix_to_euler_zyx, quat_xyzw_to_matrix
+
+    logs = sorted(small_image_run.glob("*.mcap"))
+    run = tmp_path / "run"
+    poses = []  # the initial poses a user would give in the config
+    for v in ("uav1", "uav2"):
+        t = read_tum(small_image_run / "truth" / f"{v}.tum")
+        vel = (t.p_m[1] - t.p_m[0]) / ((t.stamps_ns[1] - t.stamps_ns[0]) * 1e-9)
+        euler = matrix_to_euler_zyx(quat_xyzw_to_matrix(t.q_xyzw[0]))
+        fmt = lambda a: "[" + ", ".join(f"{x:.9f}" for x in a) + "]"  # noqa: E731
+        poses.append(
+            f"{v}: {{position_m: {fmt(t.p_m[0])}, euler_rad: {fmt(euler)}, "
+            f"velocity_m_s: {fmt(vel)}}}"
+        )
+    res = cvslam(
+        "run", *logs, "-o", run,
+        "--set", "logs.vehicle_defaults.topics.ground_truth=/none",
+        "--set", "fuse.initial.poses={" + ", ".join(poses) + "}",
+        "--set", "run.comparisons=[]", "--set", "run.mosaic=false",
+    )  # fmt: skip
+    _ok(res)
+    assert "eval skipped" in res.err and "--gt" in res.err
+    assert "no ground truth to compare with" in res.err
+    assert (run / "fuse" / "uav1.tum").is_file() and not (run / "eval").exists()
