@@ -308,6 +308,7 @@ class MosaicConfig:
     max_range_m: float = opt(0.0, lo=0.0)
     min_depression_deg: float = opt(5.0, lo=0.0, hi=90.0)
     max_canvas_mpx: float = opt(64.0, lo=0.0, lo_open=True)
+    auto_max_mpx: float = opt(16.0, lo=0.0, lo_open=True)
     overlay: bool = True
     ground: GroundConfig = opt(GroundConfig())
 

@@ -285,8 +285,11 @@ def run(
     finite = [g for g in gsds if np.isfinite(g)]
     if not mc.gsd_m and not finite:
         raise CvslamError(f"{run_dir}: no ground resolution from the images; give --gsd")
-    gsd = mc.gsd_m or _two_digits(float(np.median(finite)))
     box_all = _union([f.box_ne for f in frames])
+    gsd = mc.gsd_m
+    if not gsd:  # the images' own resolution, but no finer than auto_max_mpx allows
+        area = float((box_all[2] - box_all[0]) * (box_all[3] - box_all[1]))
+        gsd = _two_digits(max(float(np.median(finite)), np.sqrt(area / (mc.auto_max_mpx * 1e6))))
     grid = CanvasGrid.covering(box_all, gsd)
     if grid.megapixels > mc.max_canvas_mpx:
         coarser = _two_digits(gsd * np.sqrt(grid.megapixels / mc.max_canvas_mpx))
