@@ -69,6 +69,30 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+_FORCE_STAGE = click.option(
+    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
+)
+_RUN_DIR_OUTPUT = click.option(
+    "-o",
+    "--output",
+    "run_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Run directory.",
+)
+
+
+def _log_option(what: str) -> Callable[..., Any]:
+    """`--log FILE` (repeatable): the logs a stage reads `what` from."""
+    return click.option(
+        "--log",
+        "log_paths",
+        multiple=True,
+        type=click.Path(dir_okay=False, path_type=Path),
+        help=f"Log with {what} (repeatable); default: the logs the features came from.",
+    )
+
+
 def write_resolved_config(cfg: Config, output: Path) -> Path:
     """Write the resolved config next to an output file: `<stem>.config.yaml`."""
     path = output.with_name(output.stem + ".config.yaml")
@@ -284,14 +308,7 @@ def simulate(
 
 @cli.command()
 @click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option(
-    "-o",
-    "--output",
-    "run_dir",
-    required=True,
-    type=click.Path(file_okay=False, path_type=Path),
-    help="Run directory.",
-)
+@_RUN_DIR_OUTPUT
 @click.option(
     "--workers",
     type=click.IntRange(min=1),
@@ -299,9 +316,7 @@ def simulate(
     show_default=True,
     help="Processes working on frames in parallel.",
 )
-@click.option(
-    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
-)
+@_FORCE_STAGE
 @config_options
 def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cfg: Config) -> None:
     """Adaptive SIFT + stereo-constrained matching on every stereo frame of LOG...
@@ -362,16 +377,8 @@ def do_extract(
     help="Each vehicle in its own filter (for comparison with the cooperative default); "
     "outputs in RUN_DIR/fuse_single (fuse_ekf_single).",
 )
-@click.option(
-    "--log",
-    "log_paths",
-    multiple=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Log with the motion data (repeatable); default: the logs the features came from.",
-)
-@click.option(
-    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
-)
+@_log_option("the motion data")
+@_FORCE_STAGE
 @config_options
 def fuse(
     run_dir: Path,
@@ -462,16 +469,8 @@ def do_fuse(
     help="Poses to project with (default: mosaic.source, fused). Outputs go to RUN_DIR/mosaic "
     "(fused) or RUN_DIR/mosaic_<source>.",
 )
-@click.option(
-    "--log",
-    "log_paths",
-    multiple=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Log with the images (repeatable); default: the logs the features came from.",
-)
-@click.option(
-    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
-)
+@_log_option("the images")
+@_FORCE_STAGE
 @config_options
 def mosaic(
     run_dir: Path,
@@ -562,16 +561,8 @@ _GT_HELP = (
     default=None,
     help="Align each estimate to the truth first (default: eval.align, none).",
 )
-@click.option(
-    "--log",
-    "log_paths",
-    multiple=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Log with the ground truth (repeatable); default: the logs the features came from.",
-)
-@click.option(
-    "--force", is_flag=True, help="Redo the stage even if up to date or made with another config."
-)
+@_log_option("the ground truth")
+@_FORCE_STAGE
 @config_options
 def eval_cmd(
     run_dir: Path,
@@ -603,14 +594,7 @@ def do_eval(
 
 @cli.command("run")
 @click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option(
-    "-o",
-    "--output",
-    "run_dir",
-    required=True,
-    type=click.Path(file_okay=False, path_type=Path),
-    help="Run directory.",
-)
+@_RUN_DIR_OUTPUT
 @click.option("--gt", "gt", multiple=True, metavar="FILE", help=_GT_HELP)
 @click.option(
     "--workers",

@@ -99,8 +99,13 @@ def _read_trajectory(path: Path) -> PoseTable:
     return read_tum(path)
 
 
-def _gt_from_files(specs: Sequence[str], vehicles: Sequence[str]) -> dict[str, PoseTable]:
+def _gt_from_files(
+    specs: Sequence[str], vehicles: Sequence[str]
+) -> tuple[dict[str, PoseTable], list[Path]]:
+    """(truth per vehicle, the files) from `--gt` specs: FILE named <vehicle>.* or
+    VEHICLE=FILE."""
     out: dict[str, PoseTable] = {}
+    files: list[Path] = []
     for spec in specs:
         vehicle, sep, file = spec.partition("=")
         path = Path(file if sep else spec)
@@ -114,7 +119,8 @@ def _gt_from_files(specs: Sequence[str], vehicles: Sequence[str]) -> dict[str, P
         if not path.is_file():
             raise CvslamError(f"--gt {spec}: {path} not found")
         out[vehicle] = _read_trajectory(path)
-    return out
+        files.append(path)
+    return out, files
 
 
 def _logs(cfg: Config, run_dir: Path, log_paths: Sequence[Path]) -> tuple[LogSet, list[Path]]:
@@ -140,8 +146,7 @@ def _ground_truth(
 ) -> tuple[dict[str, PoseTable], list[Path], str]:
     """(truth per vehicle, files it came from, a description)."""
     if gt:
-        truth = _gt_from_files(gt, vehicles)
-        files = [Path(s.partition("=")[2] or s) for s in gt]
+        truth, files = _gt_from_files(gt, vehicles)
         missing = [v for v in vehicles if v not in truth]
         if missing:
             log.warning("eval: no ground truth given for %s: not evaluated", ", ".join(missing))
@@ -182,9 +187,12 @@ def _estimates(run_dir: Path, runs: list[str], vehicles: list[str]) -> list[_Est
 # --------------------------------------------------------------------------- metrics
 
 
-def _metrics(e: _Estimate, truth: PoseTable, cfg: EvalConfig) -> dict[str, Any]:
+def _metrics(
+    e: _Estimate, truth: PoseTable, cfg: EvalConfig
+) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray] | None]:
     """One row of metrics.csv: ATE statistics, RPE per distance (as % of the distance, KITTI
-    style, pairs chosen on the true path), final drift, position NEES."""
+    style, pairs chosen on the true path), final drift, position NEES; and the NEES over
+    time (estimate stamps_ns, NEES) where the estimate has covariances."""
     max_diff = int(cfg.max_time_diff_ms * 1e6)
     a = mtr.ate(truth, e.table, align=cfg.align, max_diff_ns=max_diff)
     length = mtr.path_length_m(truth.p_m[a.ref_idx])
@@ -221,14 +229,13 @@ def _metrics(e: _Estimate, truth: PoseTable, cfg: EvalConfig) -> dict[str, Any]:
         row[f"rpe_{name}_delta_m"] = d.delta_m
         row[f"rpe_{name}_drift_pct"] = d.mean_pct
     row["rpe_drift_pct"] = drift.average_pct
-    if e.cov is not None:
-        nees = mtr.nees_position(
-            truth.p_m[a.ref_idx], e.table.p_m[a.est_idx], e.cov[a.est_idx, :3, :3]
-        )
-        lo, hi = _nees_band(cfg)
-        row["nees_mean"] = float(np.mean(nees))
-        row["nees_in_band"] = float(np.mean((nees >= lo) & (nees <= hi)))
-    return row
+    if e.cov is None:
+        return row, None
+    nees = mtr.nees_position(truth.p_m[a.ref_idx], e.table.p_m[a.est_idx], e.cov[a.est_idx, :3, :3])
+    lo, hi = _nees_band(cfg)
+    row["nees_mean"] = float(np.mean(nees))
+    row["nees_in_band"] = float(np.mean((nees >= lo) & (nees <= hi)))
+    return row, (e.table.stamps_ns[a.est_idx], nees)
 
 
 def _nees_band(cfg: EvalConfig) -> tuple[float, float]:
@@ -272,6 +279,7 @@ def _figures(
     estimates: list[_Estimate],
     truth: dict[str, PoseTable],
     headline: pd.DataFrame,
+    nees_of: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]],
     cfg: EvalConfig,
 ) -> list[FigureEntry]:
     figdir = out / "figures"
@@ -357,15 +365,9 @@ def _figures(
                     f"{v}: position error, {what}",
                     "Position error against the ground truth over time; RMSE in the legend.",
                 )
-    nees_t: dict[str, np.ndarray] = {}
-    nees: dict[str, np.ndarray] = {}
-    for v in vehicles:
-        e = by.get((main_run, v)) if main_run else None
-        if e is None or e.cov is None:
-            continue
-        ri, ei = mtr.associate(truth[v], e.table, int(cfg.max_time_diff_ms * 1e6))
-        nees[v] = mtr.nees_position(truth[v].p_m[ri], e.table.p_m[ei], e.cov[ei, :3, :3])
-        nees_t[v] = (e.table.stamps_ns[ei] - t0) * 1e-9
+    main_nees = {v: nees_of[(main_run, v)] for v in vehicles if (main_run, v) in nees_of}
+    nees_t = {v: (st - t0) * 1e-9 for v, (st, _) in main_nees.items()}
+    nees = {v: n for v, (_, n) in main_nees.items()}
     if nees:
         add(
             figs.nees_over_time(
@@ -440,21 +442,25 @@ def run(
         return EvalSummary(run_dir, out_dir, True, old, pd.read_csv(out_dir / "metrics.csv"))
     estimates = [e for e in _estimates(run_dir, runs, vehicles) if e.vehicle in truth]
     rows = []
+    nees_of = {}
     for e in estimates:
         try:
-            rows.append(_metrics(e, truth[e.vehicle], cfg.eval))
+            row, nees_series = _metrics(e, truth[e.vehicle], cfg.eval)
         except ValueError as exc:  # no matching stamps, degenerate alignment
             raise CvslamError(
                 f"{e.path}: cannot be compared with the ground truth of {e.vehicle} "
                 f"({truth_source}): {exc}"
             ) from None
+        rows.append(row)
+        if nees_series is not None:
+            nees_of[(e.run, e.vehicle)] = nees_series
     metrics = pd.DataFrame(rows)
     headline = _headline(metrics)
 
     tmp = out_dir.with_name("eval.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    entries = _figures(run_dir, tmp, estimates, truth, headline, cfg.eval)
+    entries = _figures(run_dir, tmp, estimates, truth, headline, nees_of, cfg.eval)
     metrics.to_csv(tmp / "metrics.csv", index=False)  # full precision (repr)
     headline.to_csv(tmp / "headline.csv")
     provenance = {
