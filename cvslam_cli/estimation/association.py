@@ -1,4 +1,5 @@
-"""Data association: which stereo matches of a frame are re-observations of mapped landmarks.
+"""Data association: which stereo matches of a frame are re-observations of mapped landmarks,
+and the paper's feature types 1/2/3 (`classify`: their one definition).
 
 The stereo constraint of extract, applied over time: every landmark in the state is predicted
 into both images with the observation model (eq. 19) and its innovation covariance
@@ -11,6 +12,23 @@ chi2_4(p). Among its candidates a landmark takes the one with the smallest descr
 distance D1, if D1 < ratio * D2 (second smallest in the window) and D1 < max_distance; a match
 claimed by several landmarks goes to the smallest D1. Everything is vectorised over
 landmarks x matches (a frame has ~100 landmarks in view and a few hundred matches).
+
+Which landmarks are predicted at all (`visible_slots`): in front of the cameras, inside both
+images, and viewed from within the maximum angle of their mean viewing direction
+(`mapping.LandmarkBook.seen_from`).
+
+Feature types (paper, section "Cooperative VSLAM"), for the M stereo matches of a frame of
+vehicle v (`classify`):
+- type 1: associated with a landmark in the state that v has observed before (a
+  re-observation; after more than `loop_closure_gap_ns` without one, a loop closure);
+- type 2: associated with a landmark in the state that v observes for the first time: one
+  mapped by other vehicles (what makes cooperation pay);
+- type 3: inside no landmark's window and not associated: new; a candidate for the map
+  (`new_landmarks.py`);
+- 0: inside some landmark's window but not used this frame (failed the descriptor or
+  consistency test, or beyond the per-frame update limit): neither updates nor starts a
+  landmark (it could duplicate one).
+Types 1 and 2 update the state; type 3 is added.
 """
 
 from __future__ import annotations
@@ -20,11 +38,16 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+
+TYPE_1, TYPE_2, TYPE_3 = 1, 2, 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,3 +230,111 @@ def pose_consistent(
             break
         keep = new_keep
     return keep
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureTypes:
+    """A frame's M matches classified (module docstring): `type` (M,) 0 / 1 / 2 / 3; for the
+    k associated ones (the rows given to `classify`, in its order): `absent_ns` (k,) since
+    the vehicle last observed the landmark (0 for type 2) and `loop_closure` (k,) type 1
+    after more than the loop-closure gap."""
+
+    type: NDArray[np.int8]
+    absent_ns: I64
+    loop_closure: NDArray[np.bool_]
+
+    def count(self, t: int) -> int:
+        return int(np.sum(self.type == t))
+
+
+def absence_ns(last_seen_ns: I64, t_ns: int) -> I64:
+    """(k,) time since the vehicle last observed each landmark (0: never observed it)."""
+    return np.where(last_seen_ns != NEVER, t_ns - last_seen_ns, 0)
+
+
+def classify(
+    near: NDArray[np.bool_],
+    match_rows: I64 | None = None,
+    last_seen_ns: I64 | None = None,
+    t_ns: int = 0,
+    loop_gap_ns: int = 0,
+) -> FeatureTypes:
+    """The feature types of a frame's matches (module docstring). near (M,): inside some
+    landmark's window; match_rows (k,): the matches used to update (none: None), associated
+    with landmarks the vehicle last observed at last_seen_ns (k,) (`mapping.NEVER`: never),
+    at time t_ns."""
+    if match_rows is None or last_seen_ns is None:
+        match_rows = last_seen_ns = np.zeros(0, dtype=np.int64)
+    seen_before = last_seen_ns != NEVER
+    types = np.where(near, 0, TYPE_3).astype(np.int8)
+    types[match_rows] = np.where(seen_before, TYPE_1, TYPE_2)
+    absent = absence_ns(last_seen_ns, t_ns)
+    return FeatureTypes(types, absent, seen_before & (absent > loop_gap_ns))
+
+
+def unassociated(n_matches: int) -> FeatureTypes:
+    """The types of a frame's matches when none is associated: all type 3."""
+    return classify(np.zeros(n_matches, dtype=bool))
+
+
+def in_view_rows(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> I64:
+    """Rows of landmarks m (k, 3) predicted in front of vin's cameras at (p, Psi) and inside
+    both images (a point near the camera plane projects far outside: its Jacobian would
+    blow up the innovation covariance)."""
+    if not len(m_nav_m):
+        return np.zeros(0, dtype=np.int64)
+    depth = camera_depths(vin.obs, p, euler, m_nav_m)
+    front = np.flatnonzero(depth > 0)
+    if not len(front):
+        return front
+    z_pred, _, _ = vin.obs.predict(p, euler, m_nav_m[front])
+    return front[in_view(z_pred, depth[front], vin.features.rig.size_px)]
+
+
+def view_directions(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> F64:
+    """(k, 3) unit vectors from landmarks m (k, 3) to vin's left camera centre at (p, Psi)."""
+    centre = p + euler_zyx_to_matrix(*euler) @ vin.obs.t_body_cam[0]
+    d = centre - np.atleast_2d(m_nav_m)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def visible_slots(
+    state: JointState,
+    book: LandmarkBook,
+    vin: VehicleInput,
+    pose: VehiclePose,
+    max_angle_rad: float,
+) -> I64:
+    """Slots of the landmarks in the state predicted in view (module docstring)."""
+    p, euler = pose.p_nav_m, pose.euler_rad
+    m_all = state.landmarks()
+    slots = in_view_rows(vin, p, euler, m_all)
+    views = view_directions(vin, p, euler, m_all[slots])
+    return slots[book.seen_from(slots, views, np.cos(max_angle_rad))]
+
+
+def record_observations(
+    state: JointState, book: LandmarkBook, run: VehicleRun, slots: I64, stamp_ns: int
+) -> None:
+    """Book that run's vehicle observed the landmarks in `slots` at its current pose."""
+    vin = run.vin
+    p, euler = vin.model.pose(state.vehicle_x(vin.name))
+    views = view_directions(vin, p, euler, state.landmarks()[slots])
+    book.observe(book.slot_ids[slots], run.index, stamp_ns, views)
+
+
+def predict_in_state(
+    state: JointState, vin: VehicleInput, pose: VehiclePose, slots: I64, R_hat: F64
+) -> tuple[LandmarkPrediction, F64]:
+    """The state's landmarks in `slots` predicted into vin's images from its pose, with
+    their innovation covariances (R_hat (4, 4) the pixel noise as the filter scales it);
+    also their covariances P_mm (k, 3, 3)."""
+    lm_idx = state.landmark_index(slots)  # (k, 3)
+    P = state.P
+    P_vm = P[pose.index[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2)
+    P_mm = P[lm_idx[:, :, None], lm_idx[:, None, :]]
+    pred = predict_landmarks(
+        vin.obs, pose.p_nav_m, pose.euler_rad, pose.J, slots, state.landmarks()[slots],
+        pose.P_vv, P_vm, P_mm, R_hat,
+    )  # fmt: skip
+    return pred, P_mm

@@ -1,38 +1,53 @@
-"""Measurement updates of the EKF and of the nonlinear H-infinity filter (DESIGN.md section 2).
+"""Measurement updates of the EKF and of the nonlinear H-infinity filter: the paper's section
+"Nonlinear H-infinity filter", restated in DESIGN.md section 2. Everything NH-infinity is here:
+the noise scaling of the paper's eq. 13-14, the corrector, the bound gamma and its policy.
 
-Both take the predicted state x (n,), covariance P (n, n), measurement y (m,), predicted
-measurement h (m,), Jacobian H (m, n) (or only its non-zero columns `cols`) and noise
-covariance R (m, m); the H-infinity filter uses the scaled R_hat = c_v^2 R (the caller
-scales) and a bound gamma on a chosen set of states (indices `bounded`, the matrix L
-selecting them; all states when None). The paper's corrector (DESIGN.md section 2):
+Eq. 13-14 (the scaled problem): the linearisation errors are absorbed by running the filter on
+the process and measurement noise scaled by c_w, c_v >= 1,
+
+    Q_hat = c_w^2 Q   (eq. 13),    R_hat = c_v^2 R   (eq. 14)
+
+and *only* `FilterSettings.process_noise` and `FilterSettings.measurement_noise` apply them
+(the EKF uses Q and R as they are). Callers: the prediction (`slam.py`, Q of the motion
+model), the innovation covariances of data association (`association.predict_in_state`) and
+the update itself (`update_inplace`).
+
+The corrector, with the predicted state x (n,), covariance P (n, n), measurement y (m,),
+predicted measurement h (m,), Jacobian H (m, n) (or only its non-zero columns `cols`), R_hat
+(m, m) and the bound gamma on a chosen set of states (indices `bounded`, the matrix L
+selecting them; all states when None):
 
     K  = P H^T (H P H^T + R_hat)^-1,   x+ = x + K (y - h)
     S  = [[L P L^T - gamma^2 I, L P H^T], [H P L^T, H P H^T + R_hat]]
     P+ = P - P [L^T H^T] S^-1 [L; H] P  =  (P^-1 + H^T R_hat^-1 H - gamma^-2 L^T L)^-1
 
-is evaluated here through the EKF posterior P_ekf = P - K H P = (P^-1 + H^T R_hat^-1 H)^-1
-and the matrix inversion lemma (the same P+, to rounding; a test compares both forms):
+`hinf_update_block_form` is that block-Sigma form written out: the readable reference the
+tests compare the fast forms against. The fast forms evaluate it through the EKF posterior
+P_ekf = P - K H P = (P^-1 + H^T R_hat^-1 H)^-1 and the matrix inversion lemma (the same P+,
+to rounding):
 
     P+ = P_ekf + P_ekf L^T (gamma^2 I - L P_ekf L^T)^-1 L P_ekf
 
 It exists only while P_ekf^-1 - gamma^-2 L^T L is positive definite, i.e. while the largest
 eigenvalue of L P_ekf L^T is below gamma^2: the matrix inverted above is then positive
-definite. When it is not, gamma is raised to sqrt((1 + margin) * lambda_max) for this update
-and the result says so: the filter never produces a covariance that is not positive
-definite. As gamma -> infinity the correction vanishes and P+ is the EKF posterior (a test,
-not an assumption).
+definite. The gamma policy (`GammaPolicy`, the one owner of gamma): when the condition fails,
+gamma is raised to sqrt((1 + margin) * lambda_max) for this update and the result says so
+(the filter never produces a covariance that is not positive definite); the raised value
+holds from then on (it only grows), so that a covariance that has outgrown gamma is not
+inflated again at every update (which runs away). As gamma -> infinity the correction
+vanishes and P+ is the EKF posterior (a test, not an assumption).
 
 Cost: P H^T is n x m (only `cols` of P are read), the EKF posterior one n x n x m product,
 the bound one n x n x l product: O(n^2 (m + l)); with L selecting the vehicle states this
 is O(n^2) in the state size. With S = C C^T (Cholesky), V = P H^T C^-T gives
 K = V C^-1 and P_ekf = P - V V^T.
 
-`ekf_update` and `hinf_update` are the pure reference functions (they return new arrays).
-`ekf_update_inplace` and `hinf_update_inplace` (used by `JointState.update`) evaluate the
-same expressions in the same order on the caller's x and P, writing every n x n product into
-caller-owned work buffers: no n x n array is allocated per update (with the bound on a few
-states). In a fresh process those ~3 MB temporaries (n ~ 600) went back to the OS after each
-update and were faulted in again at the next one (BENCHMARKS.md, "Fuse: speed"). numpy
+`ekf_update` and `hinf_update` are the pure functions (they return new arrays).
+`ekf_update_inplace` and `hinf_update_inplace` (used by `update_inplace`, the filter's update
+as configured) evaluate the same expressions in the same order on the caller's x and P,
+writing every n x n product into caller-owned work buffers: no n x n array is allocated per
+update (with the bound on a few states), which keeps large freed temporaries from going back
+to the OS and being faulted in again at every update (BENCHMARKS.md, "Fuse: speed"). numpy
 evaluates `V @ V.T` and `G.T @ G` with syrk, whose result is exactly symmetric, so the
 in-place NH-infinity update needs no symmetrisation pass. Both variants make the same BLAS
 calls on the same operands as the pure functions and give their results bit for bit here
@@ -52,6 +67,59 @@ from scipy.linalg import solve_triangular
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    """kind: "ekf" or "hinf"; the H-infinity filter scales Q by c_w^2 and R by c_v^2 (eq.
+    13-14) and puts the bound gamma on the vehicle states ("vehicle") or on all states
+    ("all"); `gamma_margin`: how far above the largest eigenvalue a raised gamma^2 goes."""
+
+    kind: str = "hinf"
+    gamma: float = 10.0
+    c_w: float = 1.0
+    c_v: float = 1.0
+    bound: str = "vehicle"
+    gamma_margin: float = 10.0
+
+    @property
+    def q_scale(self) -> float:
+        return self.c_w**2 if self.kind == "hinf" else 1.0
+
+    @property
+    def r_scale(self) -> float:
+        return self.c_v**2 if self.kind == "hinf" else 1.0
+
+    def process_noise(self, Q: F64) -> F64:
+        """Q_hat = c_w^2 Q (eq. 13); Q for the EKF."""
+        return self.q_scale * Q
+
+    def measurement_noise(self, R: F64) -> F64:
+        """R_hat = c_v^2 R (eq. 14); R for the EKF."""
+        return self.r_scale * R
+
+
+class GammaPolicy:
+    """The bound gamma in use over a run (module docstring): the configured value until the
+    existence condition first fails, then the raised value (it only grows). `raised_count`:
+    the updates in which it was raised."""
+
+    def __init__(self, settings: FilterSettings) -> None:
+        self.configured = settings.gamma
+        self.margin = settings.gamma_margin
+        self.raised: float | None = None
+        self.raised_count = 0
+
+    @property
+    def gamma(self) -> float:
+        """The gamma of the next update."""
+        return self.raised if self.raised is not None else self.configured
+
+    def record(self, result: UpdateResult) -> None:
+        """Adopt a gamma the update had to raise."""
+        if result.gamma_raised:
+            self.raised = result.gamma
+            self.raised_count += 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,7 +169,7 @@ def ekf_update(
 def _existence_check(P_ekf_LL: F64, gamma: float, margin: float) -> tuple[float, bool]:
     """(gamma to use, whether it was raised): the bound exists while the largest eigenvalue
     of L P_ekf L^T (l, l) is below gamma^2 / (1 + margin); else gamma^2 is raised to
-    (1 + margin) lambda_max (module docstring)."""
+    (1 + margin) lambda_max (module docstring, the gamma policy)."""
     lam = float(np.linalg.eigvalsh(P_ekf_LL)[-1])
     if np.isfinite(gamma) and lam >= gamma**2 / (1.0 + margin):
         return float(np.sqrt((1.0 + margin) * lam)), True
@@ -136,6 +204,25 @@ def hinf_update(
     G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n)
     P_new = P_ekf + G.T @ G
     return UpdateResult(x_new, 0.5 * (P_new + P_new.T), nis, gamma, raised)
+
+
+def hinf_update_block_form(
+    x: F64, P: F64, y: F64, h: F64, H: F64, R_hat: F64, gamma: float, bounded: I64 | None = None
+) -> UpdateResult:
+    """The paper's corrector written out with its block matrix Sigma (module docstring), H
+    (m, n) dense: the reference the fast forms are tested against. O(n^3); no existence
+    check (gamma must satisfy it)."""
+    n = len(x)
+    L = np.eye(n) if bounded is None else np.eye(n)[np.asarray(bounded, dtype=np.int64)]
+    S = H @ P @ H.T + R_hat
+    K = P @ H.T @ np.linalg.inv(S)
+    W = np.concatenate([P @ L.T, P @ H.T], axis=1)  # P [L^T H^T]
+    Sigma = np.block([[L @ P @ L.T - gamma**2 * np.eye(len(L)), L @ P @ H.T],
+                      [H @ P @ L.T, S]])  # fmt: skip
+    nu = y - h
+    return UpdateResult(
+        x + K @ nu, P - W @ np.linalg.solve(Sigma, W.T), float(nu @ np.linalg.solve(S, nu)), gamma
+    )
 
 
 def _check_inplace(x: F64, P: F64, work: F64) -> None:
@@ -209,3 +296,30 @@ def hinf_update_inplace(
     np.matmul(G.T, G, out=GtG)
     np.add(P_ekf, GtG, out=P)
     return UpdateResult(x, P, nis, gamma, raised)
+
+
+def update_inplace(
+    settings: FilterSettings,
+    policy: GammaPolicy,
+    x: F64,
+    P: F64,
+    y: F64,
+    h: F64,
+    H: F64,
+    cols: I64 | None,
+    R: F64,
+    bounded: I64 | None,
+    work: F64,
+) -> UpdateResult:
+    """The filter's measurement update as configured, in place on x (n,) and P (n, n)
+    (`work` (2, n, n) scratch): the EKF with R, or NH-infinity with R_hat = c_v^2 R (eq. 14),
+    the policy's gamma on the states `bounded` (None: all). NH-infinity bounding no state
+    is the EKF with R_hat."""
+    R_hat = settings.measurement_noise(R)
+    if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
+        return ekf_update_inplace(x, P, y, h, H, R_hat, cols, work)
+    res = hinf_update_inplace(
+        x, P, y, h, H, R_hat, policy.gamma, bounded, policy.margin, cols, work
+    )
+    policy.record(res)
+    return res

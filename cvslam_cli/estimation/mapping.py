@@ -3,7 +3,7 @@
 Each landmark has a global id (in order of creation) and keeps, whether it is in the state
 or not: its descriptor (from the frame that created it), which vehicles observed it (a
 bitmask), how often, when it was first and last seen (per vehicle), and its estimate. The
-state holds at most `slam.landmark_bound`; when a frame needs room, landmarks are evicted
+state holds at most `settings.landmark_bound`; when a frame needs room, landmarks are evicted
 (marginalised out, `JointState.remove_landmarks`) and keep their last estimate in the output
 map.
 
@@ -46,7 +46,7 @@ class LandmarkBook:
         self.count = 0
         self.desc = np.zeros((capacity, DESCRIPTOR_SIZE), dtype=np.uint8)
         self.observers = np.zeros(capacity, dtype=np.int64)  # bit i: vehicle i
-        self.n_obs = np.zeros(capacity, dtype=np.int64)
+        self.n_observations = np.zeros(capacity, dtype=np.int64)
         self.first_seen_ns = np.zeros(capacity, dtype=np.int64)
         self.last_seen_ns = np.full((capacity, n_vehicles), NEVER, dtype=np.int64)
         self.true_id = np.full(capacity, -1, dtype=np.int64)
@@ -56,14 +56,14 @@ class LandmarkBook:
         self.slot_ids = np.zeros(0, dtype=np.int64)
 
     def _grow(self, need: int) -> None:
-        cap = len(self.n_obs)
+        cap = len(self.n_observations)
         if need <= cap:
             return
         new_cap = max(need, 2 * cap)
         for name in (
             "desc",
             "observers",
-            "n_obs",
+            "n_observations",
             "first_seen_ns",
             "last_seen_ns",
             "true_id",
@@ -92,7 +92,7 @@ class LandmarkBook:
         self._grow(self.count + k)
         self.desc[ids] = desc
         self.observers[ids] = 1 << vehicle
-        self.n_obs[ids] = 1
+        self.n_observations[ids] = 1
         self.first_seen_ns[ids] = stamp_ns
         self.last_seen_ns[ids, vehicle] = stamp_ns
         self.true_id[ids] = true_id
@@ -104,7 +104,7 @@ class LandmarkBook:
     def observe(self, ids: I64, vehicle: int, stamp_ns: int, view_dir: F64) -> None:
         """Landmarks `ids` (k,) observed by `vehicle` along view_dir (k, 3) (unit vectors,
         landmark to camera)."""
-        self.n_obs[ids] += 1
+        self.n_observations[ids] += 1
         self.observers[ids] |= 1 << vehicle
         self.last_seen_ns[ids, vehicle] = stamp_ns
         self.view_sum[ids] += view_dir
@@ -130,7 +130,7 @@ class LandmarkBook:
         ids = self.slot_ids[cand]
         latest = np.asarray(latest_frame_ns, dtype=np.int64)[None, :]
         in_view = np.any((self.last_seen_ns[ids] == latest) & (latest != NEVER), axis=1)
-        return cand[np.lexsort((-trace_cov[cand], self.n_obs[ids], in_view))]
+        return cand[np.lexsort((-trace_cov[cand], self.n_observations[ids], in_view))]
 
     def store_estimates(self, slots: I64, p_nav_m: F64, cov: F64) -> None:
         """Record the current estimate (k, 3) and covariance (k, 3, 3) of landmarks in slots."""
@@ -141,6 +141,11 @@ class LandmarkBook:
     def keep_slots(self, kept: I64) -> None:
         """After `JointState.remove_landmarks`: slot i now holds old slot kept[i]."""
         self.slot_ids = self.slot_ids[kept]
+
+    def other_observers(self, ids: I64, vehicle: int, names: list[str]) -> str:
+        """The vehicles (named `names`) other than `vehicle` that observed any of `ids`."""
+        bits = int(np.bitwise_or.reduce(self.observers[ids])) & ~(1 << vehicle)
+        return ";".join(n for i, n in enumerate(names) if bits >> i & 1)
 
     def observer_names(self, names: list[str]) -> tuple[str, ...]:
         out = []

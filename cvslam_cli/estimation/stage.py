@@ -30,8 +30,9 @@ from tqdm import tqdm
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, FuseConfig
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.estimation.motion import InsNoise
-from cvslam_cli.estimation.motion_models import (
+from cvslam_cli.estimation.filters import FilterSettings
+from cvslam_cli.estimation.motion.ins import InsNoise
+from cvslam_cli.estimation.motion.models import (
     ConstantVelocityModel,
     InitialUncertainty,
     InsModel,
@@ -40,22 +41,22 @@ from cvslam_cli.estimation.motion_models import (
     odometry_input,
 )
 from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.slam import (
     Slam,
     SlamResult,
-    SlamSettings,
-    VehicleInput,
     VehicleTrack,
     dead_reckoning_track,
     merge_results,
 )
-from cvslam_cli.estimation.state import FilterSettings
+from cvslam_cli.estimation.vehicle import VehicleInput
 from cvslam_cli.features.format import FeatureSet, stereo_rig
 from cvslam_cli.geometry.rotations import (
     euler_zyx_to_matrix,
     matrix_to_euler_zyx,
     matrix_to_quat_xyzw,
     quat_xyzw_to_matrix,
+    so3_log,
 )
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import (
@@ -261,10 +262,7 @@ def _initial_pose(
         dt = (gt.stamps_ns[j1] - gt.stamps_ns[j0]) * 1e-9
         v_nav = (gt.p_m[j1] - gt.p_m[j0]) / dt
         dR = quat_xyzw_to_matrix(gt.q_xyzw[j0]).T @ quat_xyzw_to_matrix(gt.q_xyzw[j1])
-        angle = np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0))
-        axis = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
-        if angle > 1e-12:
-            w_body = axis / (2.0 * np.sin(angle)) * angle / dt
+        w_body = so3_log(dR) / dt
     return int(gt.stamps_ns[i]), gt.p_m[i].copy(), euler, v_nav, w_body
 
 

@@ -29,12 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cvslam_cli.estimation.filters import (
-    UpdateResult,
-    ekf_update_inplace,
-    hinf_update_inplace,
-)
-from cvslam_cli.estimation.motion_models import MotionModel
+from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult, update_inplace
+from cvslam_cli.estimation.motion.models import MotionModel
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -51,27 +47,6 @@ class VehicleBlock:
         return np.arange(self.start, self.start + self.model.n)
 
 
-@dataclass(frozen=True)
-class FilterSettings:
-    """kind: "ekf" or "hinf"; the H-infinity filter scales Q by c_w^2 and R by c_v^2 and puts
-    the bound gamma on the vehicle states ("vehicle") or on all states ("all")."""
-
-    kind: str = "hinf"
-    gamma: float = 10.0
-    c_w: float = 1.0
-    c_v: float = 1.0
-    bound: str = "vehicle"
-    gamma_margin: float = 10.0
-
-    @property
-    def q_scale(self) -> float:
-        return self.c_w**2 if self.kind == "hinf" else 1.0
-
-    @property
-    def r_scale(self) -> float:
-        return self.c_v**2 if self.kind == "hinf" else 1.0
-
-
 class JointState:
     """Mean `x` (n,) and covariance `P` (n, n) of all vehicles and the landmarks in the state."""
 
@@ -83,9 +58,6 @@ class JointState:
             self.vehicles[name] = VehicleBlock(name, model, start)
             start += model.n
         self.n_vehicle_states = start
-        # the H-infinity bound in use: None until the existence condition first fails,
-        # then the raised value (it only grows)
-        self.gamma: float | None = None
         # storage with room to grow: x and P are views of the first n entries
         self._n = start
         self._x = np.zeros(start + 3 * 64)
@@ -220,6 +192,7 @@ class JointState:
     def update(
         self,
         settings: FilterSettings,
+        gamma: GammaPolicy,
         y: F64,
         h: F64,
         H: F64,
@@ -227,32 +200,12 @@ class JointState:
         R: F64,
         vehicles: Sequence[str] | None = None,
     ) -> UpdateResult:
-        """One measurement update with H (m, len(cols)) touching state columns `cols`, in
-        place on the state's storage (the result's x and P are the views `self.x`, `self.P`;
-        they equal `filters.ekf_update` / `hinf_update` of the state before the update).
-        NH-infinity with bound "vehicle": the bound is on the states of `vehicles` (None:
-        every vehicle)."""
-        work = self._work_view()
-        bounded = self.bounded_states(settings, vehicles)
-        if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
-            # (NH-infinity bounding no state is the EKF with R_hat; r_scale is 1 for the EKF)
-            res = ekf_update_inplace(self.x, self.P, y, h, H, settings.r_scale * R, cols, work)
-        else:
-            res = hinf_update_inplace(
-                self.x,
-                self.P,
-                y,
-                h,
-                H,
-                settings.r_scale * R,
-                self.gamma if self.gamma is not None else settings.gamma,
-                bounded,
-                settings.gamma_margin,
-                cols,
-                work,
-            )
-        if res.gamma_raised:
-            # adapt: the raised bound holds from now on, so that a covariance that has
-            # outgrown gamma is not inflated again at every update (which runs away)
-            self.gamma = res.gamma
-        return res
+        """One measurement update (`filters.update_inplace`) with H (m, len(cols)) touching
+        state columns `cols`, in place on the state's storage (the result's x and P are the
+        views `self.x`, `self.P`; they equal `filters.ekf_update` / `hinf_update` of the
+        state before the update). NH-infinity with bound "vehicle": the bound is on the
+        states of `vehicles` (None: every vehicle)."""
+        return update_inplace(
+            settings, gamma, self.x, self.P, y, h, H, cols, R,
+            self.bounded_states(settings, vehicles), self._work_view(),
+        )  # fmt: skip

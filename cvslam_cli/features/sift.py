@@ -41,10 +41,8 @@ scale of SIFT's octave 1).
    image: a grid of ~48 cells, best of every cell first, then second best, ... (uniform
    coverage constrains the pose better than clusters of strong corners).
 
-Measured (752x480; half-resolution base): the simulator's smooth texture (r ~ 0.0013) gets
-s = 6 and ~600 keypoints where fixed SIFT gives ~50; its busy texture at 1.5 px/m
-(r ~ 0.015) gets s = 2 and ~480 where fixed SIFT gives ~1560; EuRoC and KITTI (r ~ 0.011)
-keep s = 3 with ~350-650.
+What the rule gives on smooth, busy and real images: BENCHMARKS.md, "Feature extraction
+(issue 4)", "Adaptive SIFT per texture".
 
 Speed
 -----
@@ -54,13 +52,12 @@ repeatable ones. With `half_resolution_base` the image is downsampled 2x (INTER_
 u' covering full-resolution pixels 2u' and 2u' + 1) and OpenCV's upsampling (in its precise
 mode, which maps index x to 2x) brings it back to full resolution: the pyramid then starts at
 the original image. Keypoints map back as u = 2 u' + 0.5, size x 2, octave + 1 (tested on
-blobs at known positions, to < 0.1 px): ~3x faster than the upsampled base.
+blobs at known positions, to < 0.1 px); it is several times faster than the upsampled base.
 
 Detection and description run in one OpenCV pass (`detectAndCompute`), and the cap then drops
-rows. Detecting first and describing only the kept keypoints (`compute`) was measured slower
-whenever the cap drops fewer than ~250 keypoints, the usual case with the adaptive rule:
-`compute` rebuilds the whole Gaussian pyramid (~10 ms at 752x480) while a descriptor costs
-~0.04 ms (EuRoC, adaptive: 33 ms in one pass vs 43 ms in two).
+rows: describing only the kept keypoints (`compute`) rebuilds the whole Gaussian pyramid,
+which costs more than the descriptors it saves unless the cap drops hundreds of keypoints
+(BENCHMARKS.md, "Feature extraction (issue 4)", "Adaptive SIFT per texture").
 """
 
 from __future__ import annotations

@@ -100,6 +100,16 @@ def matrix_to_euler_zyx(C_nav_body: F64) -> F64:
     return np.array([roll, pitch, yaw])
 
 
+def so3_log(R: F64) -> F64:
+    """(3,) rotation vector (axis times angle, rad) of a rotation matrix R (3, 3); zero for
+    angles below 1e-12 rad."""
+    angle = np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    if not angle > 1e-12:
+        return np.zeros(3)
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return axis / (2.0 * np.sin(angle)) * angle
+
+
 def make_T(R: F64, t: F64) -> F64:
     """4x4 homogeneous transform from a 3x3 rotation and a translation."""
     T = np.eye(4)

@@ -19,11 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from cvslam_cli.geometry.gravity import G_NAV_M_S2
 from cvslam_cli.sim.trajectory import MotionSample, Trajectory
 
 F64 = NDArray[np.float64]
-
-G_NAV_M_S2 = np.array([0.0, 0.0, 9.80665])  # NED: gravity points down (+z)
 
 
 @dataclass(frozen=True)

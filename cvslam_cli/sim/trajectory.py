@@ -24,9 +24,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import BSpline, make_interp_spline
 
+from cvslam_cli.geometry.gravity import G_M_S2
+
 F64 = NDArray[np.float64]
 
-G_M_S2 = 9.80665  # standard gravity, used for the bank / pitch angles of a UAV
 
 # Below this fraction of the nominal speed the horizontal velocity is considered too small for
 # the heading (yaw) to be well defined.

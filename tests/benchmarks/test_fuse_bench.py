@@ -58,12 +58,18 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 from cvslam_cli.config import Config, load_config
 from cvslam_cli.estimation import stage
-from cvslam_cli.estimation.filters import UpdateResult, ekf_update, hinf_update
-from cvslam_cli.estimation.motion import InsNoise
-from cvslam_cli.estimation.motion_models import InitialUncertainty, InsModel, propagate
+from cvslam_cli.estimation.filters import (
+    FilterSettings,
+    GammaPolicy,
+    UpdateResult,
+    ekf_update,
+    hinf_update,
+)
+from cvslam_cli.estimation.motion.ins import InsNoise
+from cvslam_cli.estimation.motion.models import InitialUncertainty, InsModel, propagate
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.slam import Slam, SlamResult
-from cvslam_cli.estimation.state import FilterSettings, JointState
+from cvslam_cli.estimation.state import JointState
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
@@ -187,10 +193,12 @@ class Case:
         self.state.P = self.P0
 
     def update(self, settings: FilterSettings) -> None:
-        self.state.update(settings, self.y, self.h, self.H, self.cols, self.R)
+        gamma = GammaPolicy(settings)
+        self.state.update(settings, gamma, self.y, self.h, self.H, self.cols, self.R)
 
     def update_pure(self, settings: FilterSettings) -> None:
-        _pure_update(self.state, settings, self.y, self.h, self.H, self.cols, self.R)
+        gamma = GammaPolicy(settings)
+        _pure_update(self.state, settings, gamma, self.y, self.h, self.H, self.cols, self.R)
 
     def predict(self) -> None:
         self.state.predict(VEHICLE, self.x_v_new, self.F, self.Q)
@@ -199,6 +207,7 @@ class Case:
 def _pure_update(
     st: JointState,
     settings: FilterSettings,
+    gamma: GammaPolicy,
     y: F64,
     h: F64,
     H: F64,
@@ -210,17 +219,14 @@ def _pure_update(
     in-place update, commit b29bc9e): new n x n arrays copied back through the x and P
     setters; the same choice of filter and bounded states as `JointState.update`."""
     bounded = st.bounded_states(settings, vehicles)
+    R_hat = settings.measurement_noise(R)
     if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
-        res = ekf_update(st.x, st.P, y, h, H, settings.r_scale * R, cols=cols)
+        res = ekf_update(st.x, st.P, y, h, H, R_hat, cols=cols)
     else:
-        gamma = st.gamma if st.gamma is not None else settings.gamma
-        res = hinf_update(
-            st.x, st.P, y, h, H, settings.r_scale * R, gamma, bounded, settings.gamma_margin, cols
-        )
+        res = hinf_update(st.x, st.P, y, h, H, R_hat, gamma.gamma, bounded, gamma.margin, cols)
+        gamma.record(res)
     st.x = res.x
     st.P = res.P
-    if res.gamma_raised:
-        st.gamma = res.gamma
     return res
 
 

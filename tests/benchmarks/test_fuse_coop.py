@@ -79,13 +79,9 @@ from threadpoolctl import threadpool_limits
 
 from cvslam_cli.config import Config, load_config
 from cvslam_cli.estimation import stage
-from cvslam_cli.estimation.slam import (
-    Slam,
-    SlamResult,
-    VehicleInput,
-    dead_reckoning_track,
-    landmark_bound,
-)
+from cvslam_cli.estimation.settings import landmark_bound
+from cvslam_cli.estimation.slam import Slam, SlamResult, dead_reckoning_track
+from cvslam_cli.estimation.vehicle import VehicleInput
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource

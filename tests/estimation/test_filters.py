@@ -7,10 +7,15 @@ import numpy as np
 import pytest
 
 from cvslam_cli.estimation.filters import (
+    FilterSettings,
+    GammaPolicy,
+    UpdateResult,
     ekf_update,
     ekf_update_inplace,
     hinf_update,
+    hinf_update_block_form,
     hinf_update_inplace,
+    update_inplace,
 )
 
 RNG = np.random.default_rng(5)
@@ -74,21 +79,21 @@ def test_covariance_stays_spd_over_many_updates():
         assert np.allclose(P, P.T) and np.linalg.eigvalsh(P)[0] > 0
 
 
-def _paper_corrector(P, H, R, gamma, bounded):
-    """The paper's corrector with the block matrix Sigma, written out directly."""
-    L = np.eye(len(P))[bounded]
-    W = np.concatenate([P @ L.T, P @ H.T], axis=1)
-    Sigma = np.block([[L @ P @ L.T - gamma**2 * np.eye(len(bounded)), L @ P @ H.T],
-                      [H @ P @ L.T, H @ P @ H.T + R]])  # fmt: skip
-    return P - W @ np.linalg.solve(Sigma, W.T)
-
-
 def test_hinf_equals_the_papers_block_form():
+    """The fast forms (pure and in place) equal the paper's corrector with the block matrix
+    Sigma (`hinf_update_block_form`, the readable reference)."""
     x, P, y, h, H, R = _problem()
     for bounded in (np.arange(9), np.arange(30)):
+        ref = hinf_update_block_form(x, P, y, h, H, R, 4.0, bounded)
         res = hinf_update(x, P, y, h, H, R, gamma=4.0, bounded=bounded)
         assert not res.gamma_raised
-        np.testing.assert_allclose(res.P, _paper_corrector(P, H, R, 4.0, bounded), atol=1e-10)
+        np.testing.assert_allclose(res.P, ref.P, atol=1e-10)
+        np.testing.assert_allclose(res.x, ref.x, atol=1e-10)
+        assert abs(res.nis - ref.nis) < 1e-9 * ref.nis
+        xv, Pv, work = _storage(x, P)
+        hinf_update_inplace(xv, Pv, y, h, H, R, 4.0, bounded, 0.1, None, work)
+        np.testing.assert_allclose(Pv, ref.P, atol=1e-10)
+        np.testing.assert_allclose(xv, ref.x, atol=1e-10)
 
 
 def test_sparse_columns_equal_the_dense_jacobian():
@@ -161,3 +166,48 @@ def test_in_place_update_rejects_a_work_buffer_that_overlaps_the_state():
         ekf_update_inplace(xv, P_in_flat, y, h, H, R, None, flat.reshape(2, n, n))
     with pytest.raises(ValueError, match="shape"):
         hinf_update_inplace(xv, Pv, y, h, H, R, 4.0, None, 0.1, None, work[0])
+
+
+def test_noise_scaling_of_eq_13_14_applies_to_nh_infinity_only():
+    Q, R = np.diag([1.0, 2.0]), np.diag([3.0, 4.0])
+    hinf = FilterSettings("hinf", c_w=1.5, c_v=2.0)
+    np.testing.assert_array_equal(hinf.process_noise(Q), 2.25 * Q)
+    np.testing.assert_array_equal(hinf.measurement_noise(R), 4.0 * R)
+    ekf = FilterSettings("ekf", c_w=1.5, c_v=2.0)
+    np.testing.assert_array_equal(ekf.process_noise(Q), Q)
+    np.testing.assert_array_equal(ekf.measurement_noise(R), R)
+
+
+def test_gamma_policy_keeps_a_raised_gamma_and_counts_the_raises():
+    policy = GammaPolicy(FilterSettings("hinf", gamma=3.0, gamma_margin=0.5))
+    assert policy.gamma == 3.0 and policy.raised is None and policy.margin == 0.5
+    policy.record(UpdateResult(np.zeros(1), np.eye(1), 1.0, 3.0, False))
+    assert policy.gamma == 3.0 and policy.raised_count == 0
+    policy.record(UpdateResult(np.zeros(1), np.eye(1), 1.0, 7.0, True))
+    assert policy.gamma == 7.0 and policy.raised_count == 1
+
+
+def test_the_configured_update_uses_the_scaled_noise_and_the_policys_gamma():
+    """`update_inplace`: EKF with R; NH-infinity with c_v^2 R and the policy's gamma, which
+    it raises (and keeps) when the existence condition fails; no bounded state: the EKF
+    with c_v^2 R."""
+    x, P, y, h, H, R = _problem()
+    bounded = np.arange(9)
+    cases = [
+        (FilterSettings("ekf", c_v=2.0), bounded, ekf_update(x, P, y, h, H, R)),
+        (FilterSettings("hinf", gamma=4.0, c_v=2.0, gamma_margin=0.1), bounded,
+         hinf_update(x, P, y, h, H, 4.0 * R, 4.0, bounded, 0.1)),
+        (FilterSettings("hinf", gamma=4.0, c_v=2.0), np.zeros(0, np.int64),
+         ekf_update(x, P, y, h, H, 4.0 * R)),
+        (FilterSettings("hinf", gamma=0.01, gamma_margin=0.1), None,
+         hinf_update(x, P, y, h, H, R, 0.01, None, 0.1)),
+    ]  # fmt: skip
+    for settings, bnd, ref in cases:
+        policy = GammaPolicy(settings)
+        xv, Pv, work = _storage(x, P)
+        res = update_inplace(settings, policy, xv, Pv, y, h, H, None, R, bnd, work)
+        np.testing.assert_allclose(Pv, ref.P, rtol=0, atol=1e-12 * np.abs(ref.P).max())
+        np.testing.assert_allclose(xv, ref.x, rtol=0, atol=1e-12 * np.abs(ref.x).max())
+        assert res.gamma == ref.gamma and res.gamma_raised == ref.gamma_raised
+        assert policy.raised_count == int(ref.gamma_raised)
+        assert policy.gamma == (ref.gamma if ref.gamma_raised else settings.gamma)

@@ -1,22 +1,23 @@
 """The joint state: structured predict and landmark augmentation/marginalisation equal the
-dense formulas; the in-place update equals the pure reference updates; motion segments;
-association and spreading."""
+dense formulas; the in-place update equals the pure reference updates; NH-infinity's bound
+on a chosen set of vehicles (`JointState.update(vehicles=...)`): the vehicles whose pose is
+known; none bounded is the EKF with R_hat."""
 
 from __future__ import annotations
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from cvslam_cli.estimation.association import (
-    LandmarkPrediction,
-    associate,
-    spread_order,
+from cvslam_cli.estimation.filters import (
+    FilterSettings,
+    GammaPolicy,
+    UpdateResult,
+    ekf_update,
+    hinf_update,
 )
-from cvslam_cli.estimation.filters import UpdateResult, ekf_update, hinf_update
-from cvslam_cli.estimation.motion import InsNoise
-from cvslam_cli.estimation.motion_models import InsModel, OdometryModel
-from cvslam_cli.estimation.slam import motion_segments
-from cvslam_cli.estimation.state import FilterSettings, JointState
+from cvslam_cli.estimation.motion.ins import InsNoise
+from cvslam_cli.estimation.motion.models import InsModel, OdometryModel
+from cvslam_cli.estimation.state import JointState
 
 RNG = np.random.default_rng(11)
 
@@ -80,14 +81,15 @@ def test_removing_landmarks_is_marginalisation_and_storage_grows():
     np.testing.assert_array_equal(st.P[:18, :18], P0[:18, :18])
 
 
-def _reference(st: JointState, s: FilterSettings, y, h, H, cols, R) -> UpdateResult:
-    """The pure update of the state as it is now (with the bound the state carries)."""
+def _reference(
+    st: JointState, s: FilterSettings, gamma: GammaPolicy, y, h, H, cols, R
+) -> UpdateResult:
+    """The pure update of the state as it is now (with the bound the policy holds)."""
     x, P = st.x.copy(), st.P.copy()
     if s.kind == "ekf":
         return ekf_update(x, P, y, h, H, R, cols=cols)
     bounded = None if s.bound == "all" else np.arange(st.n_vehicle_states)
-    gamma = st.gamma if st.gamma is not None else s.gamma
-    return hinf_update(x, P, y, h, H, s.r_scale * R, gamma, bounded, s.gamma_margin, cols)
+    return hinf_update(x, P, y, h, H, s.r_scale * R, gamma.gamma, bounded, s.gamma_margin, cols)
 
 
 # (settings, whether gamma gets raised in the sequence below)
@@ -126,6 +128,7 @@ def _in_place_sequence(s: FilterSettings, raises: bool) -> None:
         [("a", ins, rng.normal(size=15), spd(15)), ("b", odo, rng.normal(size=3), spd(3))]
     )
     raised_seen = 0
+    policy = GammaPolicy(s)
     for step in range(40):
         if step % 4 == 0:  # grow: 12 landmarks correlated with the state
             k, n = 12, st.n
@@ -143,97 +146,56 @@ def _in_place_sequence(s: FilterSettings, raises: bool) -> None:
         H = rng.normal(size=(m, len(cols)))
         R = np.diag(rng.uniform(0.5, 2.0, m))
         y, h = rng.normal(size=m), rng.normal(size=m)
-        ref = _reference(st, s, y, h, H, cols, R)
-        gamma_before = st.gamma
-        res = st.update(s, y, h, H, cols, R)
+        ref = _reference(st, s, policy, y, h, H, cols, R)
+        gamma_before = policy.raised
+        res = st.update(s, policy, y, h, H, cols, R)
         scale = np.abs(ref.P).max()
         np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(st.x, ref.x, rtol=0, atol=1e-12 * np.abs(ref.x).max())
         assert res.nis == ref.nis
         assert res.gamma == ref.gamma and res.gamma_raised == ref.gamma_raised
-        assert st.gamma == (res.gamma if res.gamma_raised else gamma_before)
+        assert policy.raised == (res.gamma if res.gamma_raised else gamma_before)
         assert np.shares_memory(res.P, st.P) and np.shares_memory(res.x, st.x)
         np.testing.assert_array_equal(st.P, st.P.T)
         assert np.linalg.eigvalsh(st.P)[0] > 0
         raised_seen += res.gamma_raised
     assert st.n_landmarks > 64  # grew past the initial storage
     if raises:
-        assert raised_seen >= 1 and st.gamma is not None and st.gamma > s.gamma
+        assert raised_seen >= 1 and policy.raised is not None and policy.raised > s.gamma
+        assert policy.raised_count == raised_seen
     else:
-        assert raised_seen == 0 and st.gamma is None
+        assert raised_seen == 0 and policy.raised is None and policy.raised_count == 0
 
 
-def test_motion_segments_hold_each_sample_until_the_next():
-    stamps = np.array([0, 10, 20, 30], dtype=np.int64) * 1_000_000
-    U = np.arange(4, dtype=float)[:, None] * np.ones((1, 2))
-    u, dts = motion_segments(stamps, U, 5_000_000, 25_000_000)
-    np.testing.assert_allclose(dts, [5e-3, 10e-3, 5e-3])
-    np.testing.assert_allclose(u[:, 0], [0, 1, 2])
-    u, dts = motion_segments(stamps, U, 0, 0)
-    assert len(dts) == 0
-    # before the first sample: the first one; no samples (constant velocity): one step
-    u, dts = motion_segments(stamps, U, -5_000_000, 5_000_000)
-    np.testing.assert_allclose(u[:, 0], [0, 0])
-    u, dts = motion_segments(np.zeros(0, dtype=np.int64), np.zeros((0, 0)), 0, 100_000_000)
-    assert u.shape == (1, 0) and np.allclose(dts, [0.1])
+def _observation(st):
+    cols = np.concatenate([np.arange(15), st.landmark_index(np.array([1, 3])).ravel()])
+    H = RNG.normal(size=(8, len(cols)))
+    y, h = RNG.normal(size=8), RNG.normal(size=8)
+    return y, h, H, cols, np.eye(8) * 0.3
 
 
-def _prediction(z: np.ndarray, sigma: float = 1.0) -> LandmarkPrediction:
-    k = len(z)
-    S = np.broadcast_to(np.eye(4) * sigma**2, (k, 4, 4)).copy()
-    return LandmarkPrediction(np.arange(k), z, np.zeros((k, 4, 1)), np.zeros((k, 4, 3)), S)
+def test_the_bound_is_on_the_given_vehicles_only():
+    s = FilterSettings("hinf", gamma=1.5, c_v=1.2)
+    for vehicles, bounded in (
+        (["a"], np.arange(15)),
+        (["b"], np.arange(15, 18)),
+        (None, np.arange(18)),
+    ):
+        st = _state()
+        y, h, H, cols, R = _observation(st)
+        ref = hinf_update(st.x.copy(), st.P.copy(), y, h, H, s.r_scale * R, s.gamma,
+                          bounded=bounded, margin=s.gamma_margin, cols=cols)  # fmt: skip
+        res = st.update(s, GammaPolicy(s), y, h, H, cols, R, vehicles=vehicles)
+        assert res.gamma == ref.gamma and res.gamma_raised == ref.gamma_raised
+        np.testing.assert_allclose(st.x, ref.x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-12)
 
 
-def test_association_gates_then_takes_the_closest_distinctive_descriptor():
-    z = np.array([[100, 100, 90, 100], [300, 200, 280, 200], [500, 300, 490, 300.0]])
-    desc_lm = RNG.integers(0, 255, size=(3, 128)).astype(np.uint8)
-    # matches: landmark 0 seen (noisy desc) + a look-alike far outside its window;
-    # landmark 1 seen twice inside its window with two similar descriptors (ambiguous);
-    # landmark 2 not seen; one unrelated match
-    z_obs = np.array(
-        [
-            [100.5, 99.5, 90.2, 99.6],
-            [600, 100, 590, 100.0],
-            [300.5, 200.2, 280.3, 200.0],
-            [299.6, 200.4, 279.8, 200.2],
-            [50, 400, 40, 400.0],
-        ]
-    )
-    noise = lambda: RNG.integers(-3, 4, size=128)  # noqa: E731
-    d = np.clip(
-        np.stack(
-            [
-                desc_lm[0] + noise(),
-                desc_lm[0] + noise(),
-                desc_lm[1] + noise(),
-                desc_lm[1] + noise(),
-                RNG.integers(0, 255, 128),
-            ]
-        ),
-        0,
-        255,
-    ).astype(np.uint8)
-    a = associate(_prediction(z), desc_lm, z_obs, d, gate_chi2=18.47, ratio=0.8, max_distance=350)
-    assert list(a.pred_index) == [0] and list(a.match_index) == [0]
-    assert list(a.near_landmark) == [True, False, True, True, False]
-
-
-def test_a_match_goes_to_one_landmark_only():
-    z = np.array([[100, 100, 90, 100], [101, 100, 91, 100.0]])
-    desc_lm = RNG.integers(0, 255, size=(2, 128)).astype(np.uint8)
-    d = np.clip(desc_lm[1].astype(int) + 2, 0, 255).astype(np.uint8)[None]
-    a = associate(_prediction(z, 2.0), desc_lm, np.array([[100.5, 100, 90.5, 100]]), d,
-                  gate_chi2=18.47, ratio=0.8, max_distance=1e9)  # fmt: skip
-    assert list(a.pred_index) == [1] and list(a.match_index) == [0]
-
-
-def test_spread_order_visits_every_cell_before_repeating():
-    uv = np.column_stack([RNG.uniform(0, 400, 200), RNG.uniform(0, 400, 200)])
-    prio = RNG.uniform(size=200)
-    order = spread_order(uv, prio, (400, 400), grid=4)
-    assert sorted(order) == list(range(200))
-    cells = (uv[order, 1] // 100).astype(int) * 4 + (uv[order, 0] // 100).astype(int)
-    assert len(set(cells[:16])) == 16
-    # within a cell, lower priority first
-    c0 = order[cells == cells[0]]
-    assert np.all(np.diff(prio[c0]) >= 0)
+def test_no_vehicle_bounded_is_the_ekf_with_the_scaled_noise():
+    s = FilterSettings("hinf", gamma=1.5, c_v=1.2)
+    st = _state()
+    y, h, H, cols, R = _observation(st)
+    ref = ekf_update(st.x.copy(), st.P.copy(), y, h, H, s.r_scale * R, cols=cols)
+    st.update(s, GammaPolicy(s), y, h, H, cols, R, vehicles=[])
+    np.testing.assert_allclose(st.x, ref.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-12)

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from cvslam_cli.geometry.rotations import (
     euler_zyx_to_matrix,
@@ -9,6 +10,7 @@ from cvslam_cli.geometry.rotations import (
     matrix_to_euler_zyx,
     matrix_to_quat_xyzw,
     quat_xyzw_to_matrix,
+    so3_log,
 )
 
 
@@ -75,3 +77,14 @@ def test_interpolate_poses_slerps_and_marks_stamps_outside():
     for k, want_yaw in ((1, 0.0), (2, 0.2), (3, 0.8), (4, 1.2)):
         want = quat_xyzw_to_matrix(np.array([0, 0, np.sin(want_yaw / 2), np.cos(want_yaw / 2)]))
         np.testing.assert_allclose(got_R[k], want, atol=1e-12)
+
+
+def test_so3_log_is_axis_times_angle():
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = rng.uniform(1e-6, 3.0)
+        R = Rotation.from_rotvec(axis * angle).as_matrix()
+        np.testing.assert_allclose(so3_log(R), axis * angle, atol=1e-9)
+    np.testing.assert_array_equal(so3_log(np.eye(3)), np.zeros(3))

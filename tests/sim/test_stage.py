@@ -11,7 +11,6 @@ import yaml
 
 from cvslam_cli.config import load_config
 from cvslam_cli.errors import ConfigError, CvslamError
-from cvslam_cli.estimation.strapdown import integrate_strapdown
 from cvslam_cli.geometry.rotations import quat_xyzw_to_matrix
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
@@ -19,6 +18,7 @@ from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.records import ImuSample, OdometryRecord, PoseRecord, StereoFrame
 from cvslam_cli.sim.scenario import SCENARIO_DIR, load_scenario
 from cvslam_cli.sim.stage import run
+from cvslam_cli.sim.strapdown import integrate_strapdown
 from cvslam_cli.sim.vehicles import build_path
 
 SMALL_CAMERA = {

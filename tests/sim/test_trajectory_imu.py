@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cvslam_cli.estimation.strapdown import integrate_strapdown, local_cubic_coefficients
+from cvslam_cli.geometry.gravity import G_NAV_M_S2
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix, matrix_to_euler_zyx
-from cvslam_cli.sim.imu import G_NAV_M_S2, ImuNoise, simulate_imu, true_imu
+from cvslam_cli.sim.imu import ImuNoise, simulate_imu, true_imu
 from cvslam_cli.sim.odometry import OdometryNoise, simulate_odometry
+from cvslam_cli.sim.strapdown import integrate_strapdown, local_cubic_coefficients
 from cvslam_cli.sim.trajectory import (
     StationaryTrajectory,
     Trajectory,

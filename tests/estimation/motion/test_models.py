@@ -8,14 +8,13 @@ import numpy as np
 import pytest
 
 from cvslam_cli.config import load_config
-from cvslam_cli.estimation.motion import InsNoise
-from cvslam_cli.estimation.motion_models import (
+from cvslam_cli.estimation.motion.ins import InsNoise
+from cvslam_cli.estimation.motion.models import (
     ConstantVelocityModel,
     InitialUncertainty,
     InsModel,
     MotionModel,
     OdometryModel,
-    dead_reckoning,
     odometry_input,
     propagate,
 )
@@ -48,6 +47,20 @@ INIT = InitialUncertainty(
     accel_bias_m_s2=0.02,
     gyro_bias_rad_s=1e-3,
 )
+
+
+def dead_reckoning(
+    model: MotionModel, x0: np.ndarray, U: np.ndarray, dts: np.ndarray
+) -> np.ndarray:
+    """All states of K steps without any correction: X (K+1, n), X[0] = x0, X[k+1] the state
+    after U[k] held over dts[k]."""
+    X = np.empty((len(dts) + 1, model.n))
+    X[0] = x = np.asarray(x0, dtype=float)
+    U = np.asarray(U, dtype=float).reshape(len(dts), model.input_size)
+    for k in range(len(dts)):
+        x = model.step(x, U[k], float(dts[k]))[0]
+        X[k + 1] = x
+    return X
 
 
 def _state(model: MotionModel, rng: np.random.Generator) -> np.ndarray:

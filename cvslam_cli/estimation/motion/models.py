@@ -31,7 +31,8 @@ from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from cvslam_cli.estimation.motion import G_NAV, InsNoise, euler_rate_matrix, ins_step_terms
+from cvslam_cli.estimation.motion.ins import InsNoise, euler_rate_matrix, ins_step_terms
+from cvslam_cli.geometry.gravity import G_M_S2
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
 
 if TYPE_CHECKING:  # the core takes records but never imports io/ (DESIGN.md section 6)
@@ -135,7 +136,7 @@ class InsModel:
 
     noise: InsNoise
     biases: bool = True
-    g_nav: tuple[float, float, float] = (float(G_NAV[0]), float(G_NAV[1]), float(G_NAV[2]))
+    g_nav: tuple[float, float, float] = (0.0, 0.0, G_M_S2)
     kind: Literal["ins"] = field(default="ins", init=False)
     input_size: int = field(default=6, init=False)
 
@@ -455,15 +456,3 @@ def propagate(model: MotionModel, x: F64, U: F64, dts: F64) -> tuple[F64, F64, F
         F_total = F @ F_total
         Q_total = F @ Q_total @ F.T + Q
     return x, F_total, 0.5 * (Q_total + Q_total.T)
-
-
-def dead_reckoning(model: MotionModel, x0: F64, U: F64, dts: F64) -> F64:
-    """All states of K steps without any correction: X (K+1, n), X[0] = x0, X[k+1] the state
-    after U[k] held over dts[k] (the dead-reckoning baseline trajectory)."""
-    x, U, dt = _check_inputs(model, x0, U, dts)
-    X = np.empty((len(dt) + 1, model.n))
-    X[0] = x
-    for k in range(len(dt)):
-        x = model.step(x, U[k], dt[k])[0]
-        X[k + 1] = x
-    return X

@@ -24,12 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from cvslam_cli.geometry.gravity import G_NAV_M_S2
+
 F64 = NDArray[np.float64]
-G_NAV = np.array([0.0, 0.0, 9.80665])
-
-
-def skew(a: F64) -> F64:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
 
 
 def euler_rate_matrix(euler_rad: F64) -> tuple[F64, F64]:
@@ -91,7 +88,7 @@ _TEMPLATES = {9: _templates(9), 15: _templates(15)}
 
 
 def ins_step_terms(
-    x: F64, accel_m_s2: F64, gyro_rad_s: F64, dt: float, g_nav: F64 = G_NAV
+    x: F64, accel_m_s2: F64, gyro_rad_s: F64, dt: float, g_nav: F64 = G_NAV_M_S2
 ) -> tuple[F64, F64, F64]:
     """One step of eq. 1-2 for a 9- or 15-state vehicle: (x+ (n,), F (n, n) = dx+/dx,
     Gu (n, n_noise)), where Gu is dx+/d(noise) with the white-noise columns divided by dt
@@ -191,18 +188,9 @@ def ins_step_terms(
     return np.array(xn), F, Gu
 
 
-def ins_step(
-    x: F64, accel_m_s2: F64, gyro_rad_s: F64, dt: float, g_nav: F64 = G_NAV
-) -> tuple[F64, F64, F64]:
-    """One step of eq. 1 for a 9- or 15-state vehicle: (x+ (n,), F (n, n) = dx+/dx,
-    G (n, n_noise) = dx+/d(accel noise, gyro noise[, accel bias walk, gyro bias walk]))."""
-    x_new, F, G = ins_step_terms(x, accel_m_s2, gyro_rad_s, dt, g_nav)
-    G[:, 0:6] *= dt
-    return x_new, F, G
-
-
 def ins_process_noise(noise: InsNoise, dt: float, biases: bool) -> F64:
-    """Q of one step for `ins_step`'s G: white noise variance density^2 / dt per sample,
+    """Q of one step for the noise Jacobian G of `ins_step_terms` with its white-noise columns
+    scaled by dt (per sample): white noise variance density^2 / dt per sample,
     bias walk variance density^2 * dt."""
     q = [noise.accel_noise_density**2 / dt] * 3 + [noise.gyro_noise_density**2 / dt] * 3
     if biases:

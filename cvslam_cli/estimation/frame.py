@@ -1,0 +1,79 @@
+"""One stereo frame of one vehicle as the filter's loop sees it: its matches, read from the
+feature set once (`FrameMatches`), and what the frame did (`FrameOutcome`, the timeline
+row's counts), filled in by the loop's steps."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cvslam_cli.features.format import FeatureSet
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True, eq=False)
+class FrameMatches:
+    """The M stereo matches of frame `index` of a vehicle, taken at `stamp_ns`:
+    z (M, 4) observations (u_l, v_l, u_r, v_r), undistorted pixels (eq. 19's measurement);
+    desc (M, 128) left-image descriptors; p_cam_m (M, 3) triangulated points in the left
+    camera frame with covariances cov_cam_m2 (M, 3, 3) (the inverse observation model);
+    true_id (M,) the simulator's landmark ids (-1 unknown); can_start (M,) whether a match's
+    point can start a landmark (finite, in front, depth standard deviation below the
+    configured fraction of the depth)."""
+
+    stamp_ns: int
+    index: int
+    z: F64
+    desc: NDArray[np.uint8]
+    p_cam_m: F64
+    cov_cam_m2: F64
+    true_id: I64
+    can_start: NDArray[np.bool_]
+
+    @staticmethod
+    def of(fs: FeatureSet, index: int, stamp_ns: int, max_depth_sigma_ratio: float) -> FrameMatches:
+        sl = fs.frame_matches(index)
+        ml, mr = fs.match_left[sl], fs.match_right[sl]
+        p_cam = fs.match_p_cam_m[sl]
+        cov_cam = fs.match_cov_cam_m2[sl]
+        depth = p_cam[:, 2]
+        sigma = np.sqrt(np.maximum(cov_cam[:, 2, 2], 0.0))
+        with np.errstate(invalid="ignore"):
+            can_start = np.isfinite(depth) & (depth > 0) & (sigma < max_depth_sigma_ratio * depth)
+        return FrameMatches(
+            stamp_ns=stamp_ns,
+            index=index,
+            z=np.concatenate([fs.left_uv_px[ml], fs.right_uv_px[mr]], axis=1).astype(float),
+            desc=fs.left_desc[ml],
+            p_cam_m=p_cam,
+            cov_cam_m2=cov_cam,
+            true_id=fs.match_landmark_id[sl],
+            can_start=can_start,
+        )
+
+    def __len__(self) -> int:
+        return len(self.z)
+
+
+@dataclass(eq=False)
+class FrameOutcome:
+    """What one frame did. types (M,): each match's feature type (`association.classify`;
+    0 until classified); updated_slots: the landmarks it updated; the counts of the timeline
+    row; nis / dof of its update and the gamma used."""
+
+    types: NDArray[np.int8]
+    updated_slots: I64 = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    visible: int = 0
+    type1: int = 0
+    type2: int = 0
+    type3: int = 0
+    loop: int = 0
+    rejected: int = 0
+    nis: float = float("nan")
+    dof: int = 0
+    gamma: float = float("nan")
+    gamma_raised: bool = False

@@ -1,0 +1,151 @@
+"""New landmarks (type 3) and room for them in the state.
+
+A frame's type-3 matches (`association.classify`) whose point can start a landmark become
+the vehicle's candidates; a landmark is only created from a candidate that the vehicle's
+next frame confirms (predicted with the new pose, inside its window, passing the descriptor
+ratio test): a wrong stereo match (a random pairing) is not seen again, so it never enters
+the map. When fewer than `target_tracked` landmarks were updated, up to `max_new_per_frame`
+confirmed matches (spread over the image, the most precise first) are initialised with the
+inverse observation model, their covariance and cross-covariance from the pose (standard
+SLAM augmentation):
+
+    m = g(x_v, p_cam),  P_mm = G_x P_vv G_x^T + G_c C_cam G_c^T,  P_mx = G_x P_v.
+
+The state is kept under its landmark bound (`settings.landmark_bound`) by evicting in the
+order of `mapping.LandmarkBook.eviction_order`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cvslam_cli.estimation.association import (
+    LandmarkPrediction,
+    associate,
+    in_view_rows,
+    spread_order,
+    view_directions,
+)
+from cvslam_cli.estimation.frame import FrameMatches
+from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
+from cvslam_cli.estimation.settings import SlamSettings
+from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.vehicle import Candidates, VehiclePose, VehicleRun
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+class NewLandmarks:
+    """Candidates, confirmation, initialisation and eviction (module docstring) on `state`
+    and `book`, with at most `max_landmarks` in the state."""
+
+    def __init__(
+        self, state: JointState, book: LandmarkBook, settings: SlamSettings, max_landmarks: int
+    ) -> None:
+        self.state = state
+        self.book = book
+        self.settings = settings
+        self.max_landmarks = max_landmarks
+
+    def wanted(self, n_updated: int) -> int:
+        """How many new landmarks a frame that updated `n_updated` should add."""
+        s = self.settings
+        return min(s.max_new_per_frame, max(0, s.target_tracked - n_updated))
+
+    def confirm(self, run: VehicleRun, frame: FrameMatches, free: NDArray[np.bool_]) -> I64:
+        """Matches of this frame (indices into it) among `free` that re-observe a candidate
+        of the vehicle's previous frame (module docstring)."""
+        cand = run.candidates
+        idx = np.flatnonzero(free & frame.can_start)
+        if cand is None or len(cand.m) == 0 or len(idx) == 0:
+            return np.zeros(0, dtype=np.int64)
+        vin = run.vin
+        pose = VehiclePose.of(self.state, vin)
+        ok = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, cand.m)
+        if len(ok) == 0:
+            return np.zeros(0, dtype=np.int64)
+        z, _, H_m = vin.obs.predict(pose.p_nav_m, pose.euler_rad, cand.m[ok])
+        R4 = np.eye(4) * self.settings.pixel_sigma_px**2
+        S = H_m @ cand.cov[ok] @ np.swapaxes(H_m, 1, 2) + R4
+        pred = LandmarkPrediction(ok, z, H_m, H_m, S)
+        s = self.settings
+        assoc = associate(
+            pred, cand.desc[ok], frame.z[idx], frame.desc[idx], s.gate_chi2, s.descriptor_ratio,
+            s.max_descriptor_distance,
+        )  # fmt: skip
+        return idx[assoc.match_index]
+
+    def remember_candidates(
+        self, run: VehicleRun, frame: FrameMatches, free: NDArray[np.bool_]
+    ) -> None:
+        """This frame's free matches become the candidates the next frame may confirm."""
+        idx = np.flatnonzero(free & frame.can_start)
+        vin = run.vin
+        pose = VehiclePose.of(self.state, vin)
+        m, cov = vin.obs.landmark_from_camera_point(
+            pose.p_nav_m, pose.euler_rad, frame.p_cam_m[idx], frame.cov_cam_m2[idx], pose.cov
+        )
+        run.candidates = Candidates(m, cov, frame.desc[idx], frame.z[idx], frame.stamp_ns)
+
+    def add(
+        self,
+        run: VehicleRun,
+        runs: list[VehicleRun],
+        frame: FrameMatches,
+        cand: I64,
+        protected: I64,
+        want: int,
+    ) -> I64:
+        """Initialise up to `want` of the matches `cand` (confirmed candidates) as landmarks,
+        evicting landmarks (never `protected`) when the state is full; `runs`: every
+        vehicle's, in vehicle order. Returns their slots."""
+        depth = frame.p_cam_m[cand, 2]
+        sig = np.sqrt(np.maximum(frame.cov_cam_m2[cand, 2, 2], 0.0))
+        size = tuple(run.vin.features.rig.size_px[0])
+        pick = cand[spread_order(frame.z[cand, :2], sig / depth, size)[:want]]
+        pick = self._make_room(run, runs, protected, pick)
+        if len(pick) == 0:
+            return np.zeros(0, dtype=np.int64)
+        st = self.state
+        vin = run.vin
+        pose = VehiclePose.of(st, vin)
+        m, J_pose, J_pc = vin.obs.landmark_jacobians(
+            pose.p_nav_m, pose.euler_rad, frame.p_cam_m[pick]
+        )
+        k = len(pick)
+        Jx = (J_pose @ pose.J).reshape(3 * k, len(pose.index))  # d m / d x_v, (3k, n_v)
+        P_mx = Jx @ st.P[pose.index, :]
+        P_mm = P_mx[:, pose.index] @ Jx.T
+        meas = J_pc @ frame.cov_cam_m2[pick] @ J_pc.T  # (k, 3, 3)
+        for j in range(k):
+            P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += meas[j]
+        slots = st.add_landmarks(m, P_mm, P_mx)
+        self.book.add(
+            frame.desc[pick],
+            run.index,
+            frame.stamp_ns,
+            frame.true_id[pick],
+            view_directions(vin, pose.p_nav_m, pose.euler_rad, m),
+        )
+        return slots
+
+    def _make_room(self, run: VehicleRun, runs: list[VehicleRun], protected: I64, pick: I64) -> I64:
+        """Evict landmarks (in batches of at least a tenth of the bound: fewer copies) when
+        `pick` would not fit; returns the part of `pick` that fits."""
+        st = self.state
+        bound = self.max_landmarks
+        over = st.n_landmarks + len(pick) - bound
+        if over <= 0:
+            return pick
+        covs = st.landmark_covariances(np.arange(st.n_landmarks))
+        # each other vehicle's latest frame: the landmarks it is tracking go last
+        latest = np.array(
+            [r.stamps[-1] if r.stamps and r is not run else NEVER for r in runs], dtype=np.int64
+        )
+        order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2), latest)
+        evict = order[: max(over, bound // 10)]
+        self.book.store_estimates(evict, st.landmarks()[evict], covs[evict])
+        self.book.keep_slots(st.remove_landmarks(evict))
+        return pick[: max(0, bound - st.n_landmarks)]

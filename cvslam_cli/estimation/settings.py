@@ -1,0 +1,44 @@
+"""The settings of the central filter's loop (`slam.py`), from the config's `fuse` section
+(`stage.slam_settings`), and the bound on landmarks in the state that follows from them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from cvslam_cli.estimation.filters import FilterSettings
+
+
+@dataclass(frozen=True)
+class SlamSettings:
+    filter: FilterSettings = field(default_factory=FilterSettings)
+    pixel_sigma_px: float = 0.5
+    gate_chi2: float = 18.47  # chi2 with 4 dof at 0.999
+    consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
+    descriptor_ratio: float = 0.8
+    max_descriptor_distance: float = 350.0
+    max_landmarks: int = 150  # with one vehicle in the filter ...
+    landmarks_per_added_vehicle: int = 100  # ... plus this many per other vehicle ...
+    max_landmarks_total: int = 400  # ... up to this many in all
+    max_updates_per_frame: int = 30
+    target_tracked: int = 30
+    max_new_per_frame: int = 15
+    max_new_depth_sigma_ratio: float = 0.25
+    loop_closure_gap_ns: int = 20_000_000_000
+    loop_closure_min_landmarks: int = 3
+    event_merge_ns: int = 5_000_000_000
+    joint_init_window_ns: int = 200_000_000
+    nis_window: int = 20
+    nis_per_dof_max: float = 10.0
+    max_view_angle_rad: float = 1.3963  # 80 degrees
+    localise_min_inliers: int = 12
+    localise_reprojection_px: float = 2.0
+    localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
+
+
+def landmark_bound(s: SlamSettings, n_vehicles: int) -> int:
+    """Landmarks the state holds at most with n vehicles: `max_landmarks` for the first
+    vehicle, `landmarks_per_added_vehicle` for each other, up to `max_landmarks_total`. Each
+    vehicle needs room for the landmarks it tracks; the older map, kept for loop closures
+    and re-observations, is shared (BENCHMARKS.md, "Fuse: cooperative")."""
+    grown = s.max_landmarks + (n_vehicles - 1) * s.landmarks_per_added_vehicle
+    return min(grown, max(s.max_landmarks_total, s.max_landmarks))

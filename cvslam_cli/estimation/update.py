@@ -1,0 +1,62 @@
+"""The visual measurement update: stereo observations of landmarks (eq. 19) stacked into one
+EKF or NH-infinity update of the joint state (`filters.py`).
+
+Each observation z_j = (u_l, v_l, u_r, v_r) of landmark j gives 4 rows of H, touching the
+observing vehicle's block (H_v,j) and landmark j's 3 columns (H_m,j) only; the noise is the
+pixel noise, independent per coordinate (R = sigma_px^2 I), scaled by the filter (eq. 14).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
+from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult
+from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+class VisualUpdater:
+    """Predictions and stacked updates on `state` with the filter `settings`, the pixel
+    noise `pixel_sigma_px` and the run's gamma policy."""
+
+    def __init__(self, state: JointState, settings: FilterSettings, pixel_sigma_px: float) -> None:
+        self.state = state
+        self.settings = settings
+        self.pixel_sigma_px = pixel_sigma_px
+        self.gamma = GammaPolicy(settings)
+
+    def pixel_noise(self) -> F64:
+        """(4, 4) R of one stereo observation, unscaled."""
+        return np.eye(4) * self.pixel_sigma_px**2
+
+    def predict(self, vin: VehicleInput, slots: I64) -> tuple[LandmarkPrediction, VehiclePose, F64]:
+        """The landmarks in `slots` predicted into vin's images with their innovation
+        covariances (with R_hat); also the pose predicted from and P_mm (k, 3, 3)."""
+        pose = VehiclePose.of(self.state, vin)
+        R_hat = self.settings.measurement_noise(self.pixel_noise())
+        pred, P_mm = predict_in_state(self.state, vin, pose, slots, R_hat)
+        return pred, pose, P_mm
+
+    def update(
+        self, v_idx: I64, pred: LandmarkPrediction, rows: I64, z: F64, bounded: Sequence[str]
+    ) -> UpdateResult:
+        """One update (eq. 19) with observations z (k, 4) of the predicted landmarks `pred`
+        rows `rows` (k,) by the vehicle whose state rows are v_idx; NH-infinity's bound on
+        the vehicles `bounded`."""
+        k, nv = len(rows), len(v_idx)
+        H_lm = np.zeros((k, 4, k, 3))  # landmark j's rows touch only its columns
+        H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[rows]
+        H = np.concatenate([pred.H_v[rows].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1)
+        cols = np.concatenate([v_idx, self.state.landmark_index(pred.slots[rows]).reshape(-1)])
+        R = np.kron(np.eye(k), self.pixel_noise())
+        return self.state.update(
+            self.settings, self.gamma, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R,
+            vehicles=bounded,
+        )  # fmt: skip

@@ -1,0 +1,110 @@
+"""A vehicle in the central filter: what it brings (`VehicleInput`), what the loop keeps for
+it while running (`VehicleRun`), and its pose as the joint state has it now (`VehiclePose`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cvslam_cli.estimation.motion.models import MotionModel
+from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.state import JointState
+from cvslam_cli.features.format import FeatureSet
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True, eq=False)
+class VehicleInput:
+    """One vehicle: its motion model, initial state x0 (n,) / P0 (n, n) at `start_ns`,
+    motion samples `motion_stamps_ns` (K,) with inputs (K, input_size) (empty for the
+    constant-velocity model), its features and stereo observation model. `pose_known` False:
+    x0 is only a rough prior; the vehicle is localised in the shared map first
+    (`cooperation.localise_vehicle`) and neither updates nor maps until then."""
+
+    name: str
+    model: MotionModel
+    x0: F64
+    P0: F64
+    start_ns: int
+    motion_stamps_ns: I64
+    motion_inputs: F64
+    features: FeatureSet
+    obs: StereoObservationModel
+    pose_known: bool = True
+
+
+@dataclass(frozen=True, eq=False)
+class Candidates:
+    """A vehicle's unmatched stereo points of its last frame (k), which its next frame may
+    confirm as new landmarks (type 3) and another vehicle's new landmarks may be jointly
+    initialised with: nav positions m (k, 3) with covariances cov (k, 3, 3) from its pose
+    then, descriptors desc (k, 128), the observations z (k, 4) and the frame's stamp."""
+
+    m: F64
+    cov: F64
+    desc: NDArray[np.uint8]
+    z: F64
+    stamp_ns: int
+
+    def without(self, rows: I64) -> Candidates:
+        keep = np.ones(len(self.m), dtype=bool)
+        keep[rows] = False
+        return Candidates(
+            self.m[keep], self.cov[keep], self.desc[keep], self.z[keep], self.stamp_ns
+        )
+
+
+@dataclass(eq=False)
+class VehicleRun:
+    """Per-vehicle bookkeeping during a run: `index` (its bit in the landmark book), the time
+    its state was predicted to (`t_ns`), the estimates recorded at its frames (stamps, vehicle
+    states x (n,), pose covariances (6, 6)), when its pose became known (its start, or when
+    it was localised; None while unknown) and its last frame's candidates."""
+
+    vin: VehicleInput
+    index: int
+    t_ns: int
+    localised_ns: int | None
+    stamps: list[int] = field(default_factory=list)
+    x: list[F64] = field(default_factory=list)
+    pose_cov: list[F64] = field(default_factory=list)
+    candidates: Candidates | None = None
+
+    @staticmethod
+    def start(vin: VehicleInput, index: int) -> VehicleRun:
+        return VehicleRun(vin, index, vin.start_ns, vin.start_ns if vin.pose_known else None)
+
+    @property
+    def localised(self) -> bool:
+        return self.localised_ns is not None
+
+
+@dataclass(frozen=True, eq=False)
+class VehiclePose:
+    """A vehicle's block of the joint state now: `index` (n_v,) its state rows, x (n_v,) (a
+    copy), p_nav_m (3,), euler_rad (3,), J (6, n_v) = d(p, Psi)/d x_v, P_vv (n_v, n_v)."""
+
+    index: I64
+    x: F64
+    p_nav_m: F64
+    euler_rad: F64
+    J: F64
+    P_vv: F64
+
+    @staticmethod
+    def of(state: JointState, vin: VehicleInput) -> VehiclePose:
+        index = state.vehicles[vin.name].index
+        x = state.x[index]
+        p, euler = vin.model.pose(x)
+        return VehiclePose(
+            index, x, p, euler, vin.model.pose_jacobian(x), state.P[np.ix_(index, index)]
+        )
+
+    @property
+    def cov(self) -> F64:
+        """(6, 6) covariance of (p, Psi)."""
+        return self.J @ self.P_vv @ self.J.T

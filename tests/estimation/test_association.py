@@ -1,0 +1,98 @@
+"""Data association: gating, the descriptor test, one landmark per match, spreading over
+the image; the feature types 1/2/3 (`classify`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cvslam_cli.estimation.association import (
+    TYPE_1,
+    TYPE_2,
+    TYPE_3,
+    LandmarkPrediction,
+    associate,
+    classify,
+    spread_order,
+    unassociated,
+)
+from cvslam_cli.estimation.mapping import NEVER
+
+RNG = np.random.default_rng(11)
+
+
+def _prediction(z: np.ndarray, sigma: float = 1.0) -> LandmarkPrediction:
+    k = len(z)
+    S = np.broadcast_to(np.eye(4) * sigma**2, (k, 4, 4)).copy()
+    return LandmarkPrediction(np.arange(k), z, np.zeros((k, 4, 1)), np.zeros((k, 4, 3)), S)
+
+
+def test_association_gates_then_takes_the_closest_distinctive_descriptor():
+    z = np.array([[100, 100, 90, 100], [300, 200, 280, 200], [500, 300, 490, 300.0]])
+    desc_lm = RNG.integers(0, 255, size=(3, 128)).astype(np.uint8)
+    # matches: landmark 0 seen (noisy desc) + a look-alike far outside its window;
+    # landmark 1 seen twice inside its window with two similar descriptors (ambiguous);
+    # landmark 2 not seen; one unrelated match
+    z_obs = np.array(
+        [
+            [100.5, 99.5, 90.2, 99.6],
+            [600, 100, 590, 100.0],
+            [300.5, 200.2, 280.3, 200.0],
+            [299.6, 200.4, 279.8, 200.2],
+            [50, 400, 40, 400.0],
+        ]
+    )
+    noise = lambda: RNG.integers(-3, 4, size=128)  # noqa: E731
+    d = np.clip(
+        np.stack(
+            [
+                desc_lm[0] + noise(),
+                desc_lm[0] + noise(),
+                desc_lm[1] + noise(),
+                desc_lm[1] + noise(),
+                RNG.integers(0, 255, 128),
+            ]
+        ),
+        0,
+        255,
+    ).astype(np.uint8)
+    a = associate(_prediction(z), desc_lm, z_obs, d, gate_chi2=18.47, ratio=0.8, max_distance=350)
+    assert list(a.pred_index) == [0] and list(a.match_index) == [0]
+    assert list(a.near_landmark) == [True, False, True, True, False]
+
+
+def test_a_match_goes_to_one_landmark_only():
+    z = np.array([[100, 100, 90, 100], [101, 100, 91, 100.0]])
+    desc_lm = RNG.integers(0, 255, size=(2, 128)).astype(np.uint8)
+    d = np.clip(desc_lm[1].astype(int) + 2, 0, 255).astype(np.uint8)[None]
+    a = associate(_prediction(z, 2.0), desc_lm, np.array([[100.5, 100, 90.5, 100]]), d,
+                  gate_chi2=18.47, ratio=0.8, max_distance=1e9)  # fmt: skip
+    assert list(a.pred_index) == [1] and list(a.match_index) == [0]
+
+
+def test_spread_order_visits_every_cell_before_repeating():
+    uv = np.column_stack([RNG.uniform(0, 400, 200), RNG.uniform(0, 400, 200)])
+    prio = RNG.uniform(size=200)
+    order = spread_order(uv, prio, (400, 400), grid=4)
+    assert sorted(order) == list(range(200))
+    cells = (uv[order, 1] // 100).astype(int) * 4 + (uv[order, 0] // 100).astype(int)
+    assert len(set(cells[:16])) == 16
+    # within a cell, lower priority first
+    c0 = order[cells == cells[0]]
+    assert np.all(np.diff(prio[c0]) >= 0)
+
+
+def test_classify_defines_the_three_types():
+    """Associated with a landmark the vehicle saw before: 1 (a loop closure when it was
+    absent longer than the gap); associated with one it never saw: 2; inside no window and
+    not associated: 3; inside a window but not associated: 0 (neither updates nor maps)."""
+    s = 1_000_000_000
+    near = np.array([True, True, True, False, True, False])
+    rows = np.array([2, 0, 4])
+    last_seen = np.array([95 * s, NEVER, 60 * s])
+    types = classify(near, rows, last_seen, 100 * s, loop_gap_ns=20 * s)
+    assert list(types.type) == [TYPE_2, 0, TYPE_1, TYPE_3, TYPE_1, TYPE_3]
+    assert list(types.absent_ns) == [5 * s, 0, 40 * s]
+    assert list(types.loop_closure) == [False, False, True]
+    assert (types.count(TYPE_1), types.count(TYPE_2), types.count(TYPE_3)) == (2, 1, 2)
+    assert list(unassociated(3).type) == [TYPE_3] * 3
+    assert list(classify(near).type) == [0, 0, 0, TYPE_3, 0, TYPE_3]
