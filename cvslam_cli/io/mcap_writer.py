@@ -20,6 +20,7 @@ from mcap_ros2.writer import Writer
 
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
+from cvslam_cli.io.atomic import AtomicFile
 from cvslam_cli.io.images import raw_fields
 from cvslam_cli.io.ros2_msgdefs import msgdef_text
 
@@ -205,9 +206,8 @@ class LogWriter:
         compression: str = "zstd",
     ) -> None:
         self.path = Path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = self.partial.open("wb")
+        self._atomic = AtomicFile(self.path)
+        self._file = self._atomic.tmp.open("wb")
         comp = {
             "zstd": CompressionType.ZSTD,
             "lz4": CompressionType.LZ4,
@@ -235,11 +235,11 @@ class LogWriter:
     def close(self) -> None:
         self._writer.finish()
         self._file.close()
-        os.replace(self.partial, self.path)
+        self._atomic.commit()
 
     def abort(self) -> None:
         self._file.close()
-        self.partial.unlink(missing_ok=True)
+        self._atomic.discard()
 
     # -- generic -------------------------------------------------------------------------
 
