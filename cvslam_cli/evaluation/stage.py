@@ -9,7 +9,7 @@ logs' ground-truth topic. Per estimate and vehicle (`metrics.py`, evo's definiti
 (as % of the distance), final drift (m and % of the path), NEES of the position where the
 fuse run wrote pose covariances (mean, and the fraction inside the chi-square band).
 
-Outputs, in `<run>/eval.partial/` renamed to `<run>/eval/` when complete: `metrics.json`,
+Outputs, in `<run>/eval/` (written as a whole folder, atomically: `io/atomic.py`): `metrics.json`,
 `metrics.csv` (one row per estimate and vehicle), `headline.csv`, `figures/*.png`,
 `report.html`.
 """

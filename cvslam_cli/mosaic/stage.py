@@ -10,7 +10,7 @@ from), the trajectories and landmark map of `<run>/<fuse_dir>/`, the images from
    north-up canvas over all footprints; each vehicle's mosaic is a sub-rectangle of it, so
    every warped image is fed to its vehicle's blender and the merged one unchanged.
 3. One pass over the logs: each selected left image is warped and fed (`blend.py`).
-4. Written to `<run>/mosaic*.partial/` and renamed when complete: `<vehicle>.png`,
+4. Written to `<run>/mosaic*/` as a whole folder, atomically (`io/atomic.py`): `<vehicle>.png`,
    `all.png` (BGRA, alpha 0 where no image fell) with world files, `*_overlay.png` with the
    trajectories and landmarks. The summary in run.yaml gives images used, size, covered
    area per mosaic, and, for a simulated run, the alignment with the true ground texture.
