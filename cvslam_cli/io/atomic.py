@@ -10,12 +10,14 @@ just before renaming the new one into its place.
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
+from typing import Self
 
 PARTIAL_SUFFIX = ".partial"
 
@@ -27,9 +29,7 @@ def partial_path(path: Path) -> Path:
 
 class AtomicFile:
     """One file written at `tmp` (parent folders created) and moved to `path` by `commit()`,
-    or removed by `discard()`. As a context manager it gives `tmp`, commits when the block
-    completes and discards when it raises; writers that stay open across calls (a log, an
-    archive written member by member) hold one and call `commit` / `discard` themselves."""
+    or removed by `discard()`."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
@@ -42,8 +42,14 @@ class AtomicFile:
     def discard(self) -> None:
         self.tmp.unlink(missing_ok=True)
 
-    def __enter__(self) -> Path:
-        return self.tmp
+
+class AtomicWriter(abc.ABC):
+    """A writer that stays open across calls (a log, an archive written member by member)
+    into an `AtomicFile`. As a context manager it calls `close()` (finish, then commit) when
+    the block completes and `abort()` (discard) when it raises."""
+
+    def __enter__(self) -> Self:
+        return self
 
     def __exit__(
         self,
@@ -52,14 +58,28 @@ class AtomicFile:
         tb: TracebackType | None,
     ) -> None:
         if exc_type is None:
-            self.commit()
+            self.close()
         else:
-            self.discard()
+            self.abort()
+
+    @abc.abstractmethod
+    def close(self) -> None: ...
+
+    @abc.abstractmethod
+    def abort(self) -> None: ...
 
 
-def atomic_file(path: Path) -> AtomicFile:
-    """`with atomic_file(path) as tmp:` write `tmp`; it becomes `path` when the block ends."""
-    return AtomicFile(path)
+@contextlib.contextmanager
+def atomic_file(path: Path) -> Iterator[Path]:
+    """`with atomic_file(path) as tmp:` write `tmp`; it becomes `path` when the block
+    completes and is removed when the block raises."""
+    f = AtomicFile(path)
+    try:
+        yield f.tmp
+    except BaseException:
+        f.discard()
+        raise
+    f.commit()
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:

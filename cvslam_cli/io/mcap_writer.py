@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import struct
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import cv2
@@ -20,7 +19,7 @@ from mcap_ros2.writer import Writer
 
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
-from cvslam_cli.io.atomic import AtomicFile
+from cvslam_cli.io.atomic import AtomicFile, AtomicWriter
 from cvslam_cli.io.images import raw_fields
 from cvslam_cli.io.ros2_msgdefs import msgdef_text
 
@@ -195,7 +194,7 @@ def imu_cdr(
     )
 
 
-class LogWriter:
+class LogWriter(AtomicWriter):
     """A ROS 2 MCAP being written. Use as a context manager."""
 
     def __init__(
@@ -217,20 +216,6 @@ class LogWriter:
         self._schemas: dict[str, Schema] = {}
         self._raw_channels: dict[str, int] = {}
         self.count = 0
-
-    def __enter__(self) -> LogWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
     def close(self) -> None:
         self._writer.finish()

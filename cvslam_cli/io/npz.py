@@ -14,16 +14,15 @@ import io
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
-from types import TracebackType
 
 import numpy as np
 
-from cvslam_cli.io.atomic import AtomicFile
+from cvslam_cli.io.atomic import AtomicFile, AtomicWriter
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
-class NpzWriter:
+class NpzWriter(AtomicWriter):
     def __init__(self, path: Path, *, compress: bool = False) -> None:
         self.path = path
         self._file = AtomicFile(path)
@@ -38,20 +37,13 @@ class NpzWriter:
         info.external_attr = 0o644 << 16
         self._zip.writestr(info, buf.getvalue())
 
-    def __enter__(self) -> NpzWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def close(self) -> None:
         self._zip.close()
-        if exc_type is None:
-            self._file.commit()
-        else:
-            self._file.discard()
+        self._file.commit()
+
+    def abort(self) -> None:
+        self._zip.close()
+        self._file.discard()
 
 
 def save_npz(path: Path, arrays: Mapping[str, np.ndarray], *, compress: bool = False) -> None:
