@@ -516,12 +516,12 @@ def run(
     comps, merged = _compositors(scene.sub_rois, grid, mc)
     fed, t_fed = _feed_images(logs, frames, scene, comps, merged, progress)
 
+    truth = _true_ground(run_dir, logs_used)
     with atomic_dir(out.path) as tmp:
-        truth = _true_ground(run_dir, logs_used)
         tracks = {v: tables[v].p_m for v in sorted(comps)}
         results = _blended(comps, merged, scene)
         infos = _write_mosaics(MosaicFolder(tmp), results, tracks, table, truth, gsd, mc.overlay)
-        union = _union_coverage(results, grid, scene.sub_rois) if merged is not None else 1.0
+    union = _union_coverage(results, grid, scene.sub_rois) if merged is not None else 1.0
     wall = time.perf_counter() - t_start
     summary = MosaicSummary(
         run_dir=run_dir,
