@@ -21,6 +21,8 @@ import click
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, dump_config, load_config
 from cvslam_cli.errors import CvslamError
+from cvslam_cli.io.atomic import write_text_atomic
+from cvslam_cli.io.run_layout import EvalFolder, FuseFolder, RunLayout, resolved_config_beside
 
 log = logging.getLogger("cvslam")
 
@@ -93,12 +95,9 @@ def _log_option(what: str) -> Callable[..., Any]:
     )
 
 
-def write_resolved_config(cfg: Config, output: Path) -> Path:
-    """Write the resolved config next to an output file: `<stem>.config.yaml`."""
-    path = output.with_name(output.stem + ".config.yaml")
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(dump_config(cfg), encoding="utf-8")
-    tmp.replace(path)
+def write_resolved_config(cfg: Config, path: Path) -> Path:
+    """Write the resolved config to `path` (a name from `io/run_layout.py`)."""
+    write_text_atomic(path, dump_config(cfg))
     return path
 
 
@@ -159,7 +158,7 @@ def _import_common(func: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _report_import(summary: Any, cfg: Config) -> None:
-    cfg_path = write_resolved_config(cfg, summary.out_path)
+    cfg_path = write_resolved_config(cfg, resolved_config_beside(summary.out_path))
     log.info(
         "wrote %s: vehicle %s, %d stereo pairs, %d IMU samples, %d ground-truth poses, "
         "%.3f s, baseline %.4f m (config: %s)",
@@ -340,7 +339,8 @@ def do_extract(
         force=force,
         progress=log.isEnabledFor(logging.INFO),
     )
-    write_resolved_config(cfg, run_dir / "features" / "extract.yaml")
+    layout = RunLayout(run_dir)
+    write_resolved_config(cfg, layout.extract_config)
     for name, v in summary.vehicles.items():
         log.info(
             "%s: %d stereo frames (%d empty, %d/%d images unpaired), %.0f keypoints and "
@@ -355,7 +355,7 @@ def do_extract(
             v.candidates_per_keypoint,
         )
     if not summary.skipped:
-        log.info("wrote %s", run_dir / "features")
+        log.info("wrote %s", layout.features_dir)
 
 
 # ----------------------------------------------------------------------------- fuse
@@ -418,7 +418,7 @@ def do_fuse(
     )
     if summary.skipped:
         return
-    write_resolved_config(cfg, summary.out_dir / "fuse.yaml")
+    write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
     for name, v in summary.vehicles.items():
         errors = (
             f"final position error {v.final_error_m:.2f} m (dead reckoning "
@@ -589,7 +589,7 @@ def do_eval(
 
     summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
     click.echo(headline_text(summary.headline))
-    log.info("report: %s", summary.out_dir / "report.html")
+    log.info("report: %s", EvalFolder(summary.out_dir).report_html)
 
 
 @cli.command("run")

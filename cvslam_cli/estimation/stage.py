@@ -14,7 +14,6 @@ temporary folder renamed when complete (docs/fuse_outputs.md): per vehicle `<v>.
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -58,6 +57,7 @@ from cvslam_cli.geometry.rotations import (
     quat_xyzw_to_matrix,
     so3_log,
 )
+from cvslam_cli.io.atomic import atomic_dir
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import (
     MapTable,
@@ -70,6 +70,7 @@ from cvslam_cli.io.fuse_files import (
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.records import ImuSample, OdometryRecord, PoseRecord
+from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import PoseTable, write_tum
 
@@ -105,47 +106,7 @@ class FuseSummary:
     gamma_raised: int
 
 
-def output_name(filter_kind: str, single: bool) -> str:
-    """`fuse` for the default (cooperative NH-infinity); `fuse_ekf`, `fuse_single`,
-    `fuse_ekf_single` for the comparison runs."""
-    return (
-        "fuse"
-        + ("" if filter_kind == "hinf" else f"_{filter_kind}")
-        + ("_single" if single else "")
-    )
-
-
 # --------------------------------------------------------------------------- inputs
-
-
-def _feature_files(run_dir: Path) -> list[Path]:
-    fdir = run_dir / "features"
-    files = sorted(fdir.glob("*.npz")) if fdir.is_dir() else []
-    if not files:
-        raise CvslamError(
-            f"{fdir}: no feature files (<vehicle>.npz); run `cvslam extract LOG... -o "
-            f"{run_dir}` first"
-        )
-    return files
-
-
-def find_logs(run_dir: Path, metas: Sequence[dict[str, Any]]) -> list[Path]:
-    """The logs the features were made from: the feature files' recorded inputs (extract),
-    else `*.mcap` beside `features/` (a simulator output directory)."""
-    paths: list[Path] = []
-    for meta in metas:
-        for rec in meta.get("inputs", []):
-            p = Path(rec["path"])
-            if p not in paths:
-                paths.append(p)
-    if not paths:
-        paths = sorted(run_dir.glob("*.mcap"))
-    missing = [p for p in paths if not p.exists()]
-    if missing:
-        raise CvslamError(
-            f"{missing[0]}: log recorded as the features' input not found; give the logs with --log"
-        )
-    return paths
 
 
 @dataclass(frozen=True, eq=False)
@@ -444,7 +405,7 @@ EVENT_COLUMNS = [
 
 
 def _write_outputs(
-    tmp: Path,
+    out: FuseFolder,
     res: SlamResult,
     dr: dict[str, VehicleTrack],
     header: str,
@@ -453,19 +414,140 @@ def _write_outputs(
     tables = {v: pose_table(t) for v, t in res.tracks.items()}
     dr_tables = {v: pose_table(t) for v, t in dr.items()}
     for v, t in res.tracks.items():
-        write_tum(tmp / f"{v}.tum", tables[v], header=f"{header}\nvehicle {v}: filter estimate")
+        write_tum(out.trajectory(v), tables[v], header=f"{header}\nvehicle {v}: filter estimate")
         write_tum(
-            tmp / f"{v}_deadreckoning.tum",
+            out.trajectory(v, deadreckoning=True),
             dr_tables[v],
             header=f"{header}\nvehicle {v}: dead reckoning (same motion input, no correction)",
         )
-        save_pose_covariances(tmp / f"{v}_pose_cov.npz", t.stamps_ns, t.pose_cov)
+        save_pose_covariances(out.pose_covariances(v), t.stamps_ns, t.pose_cov)
     table = _map_table(res)
-    write_map_csv(tmp / "map.csv", table)
-    write_map_ply(tmp / "map.ply", table)
-    write_csv_atomic(tmp / "timeline.csv", pd.DataFrame(res.timeline))
-    write_csv_atomic(tmp / "events.csv", pd.DataFrame(res.events, columns=EVENT_COLUMNS))
-    write_result_mcap(tmp / "result.mcap", tables, table, deadreckoning=dr_tables, metadata=meta)
+    write_map_csv(out.map_csv, table)
+    write_map_ply(out.map_ply, table)
+    write_csv_atomic(out.timeline, pd.DataFrame(res.timeline))
+    write_csv_atomic(out.events, pd.DataFrame(res.events, columns=EVENT_COLUMNS))
+    write_result_mcap(out.result_mcap, tables, table, deadreckoning=dr_tables, metadata=meta)
+
+
+def _header(kind: str, run_dir: Path) -> str:
+    return f"cvslam {__version__} fuse ({kind}), nav frame NED, body FRD; run {run_dir.resolve()}"
+
+
+def _metadata(kind: str, single: bool, run_dir: Path) -> dict[str, str]:
+    """The run's description in result.mcap."""
+    return {
+        "filter": kind,
+        "mode": _mode(single),
+        "cvslam_version": __version__,
+        "run_dir": str(run_dir.resolve()),
+    }
+
+
+def _mode(single: bool) -> str:
+    return "single" if single else "cooperative"
+
+
+# --------------------------------------------------------------------------- stage steps
+
+
+def _load_features(
+    layout: RunLayout,
+) -> tuple[list[Path], dict[str, FeatureSet], list[dict[str, Any]]]:
+    """(the feature files, the feature set of each vehicle, the files' metadata)."""
+    files = layout.feature_files(f"run `cvslam extract LOG... -o {layout.root}` first")
+    loaded = [load_features(p) for p in files]
+    return files, {fs.vehicle: fs for fs, _ in loaded}, [m for _, m in loaded]
+
+
+def _outputs(out: FuseFolder, vehicles: Sequence[str]) -> list[Path]:
+    """The files whose presence tells that the fuse run is complete (run.yaml)."""
+    return [out.timeline, out.map_csv, out.result_mcap, *(out.trajectory(v) for v in vehicles)]
+
+
+def _filter(
+    inputs: list[VehicleInput], settings: SlamSettings, single: bool, desc: str, progress: bool
+) -> tuple[SlamResult, float]:
+    """(the filter's result over every frame, its wall time): one filter for all vehicles,
+    or one per vehicle (`single`) with the results merged."""
+    n_frames = sum(int(np.sum(v.features.frame_stamp_ns >= v.start_ns)) for v in inputs)
+    t0 = time.perf_counter()
+    bar = tqdm(
+        total=n_frames, desc=desc, unit="frame", disable=None if progress else True, leave=False
+    )
+    # one BLAS thread: the filter's matrices (hundreds of rows) are too small to gain from
+    # threads, and OpenBLAS's thread hand-offs made every update ~3x slower on 2 cores
+    with bar, threadpool_limits(limits=1, user_api="blas"):
+        if single:
+            res = merge_results([Slam([v], settings, progress=bar.update).run() for v in inputs])
+        else:
+            res = Slam(inputs, settings, progress=bar.update).run()
+    return res, time.perf_counter() - t0
+
+
+def _refuse_diverged(
+    res: SlamResult, inputs: list[VehicleInput], layout: RunLayout, name: str, kind: str
+) -> None:
+    """A diverged filter writes no outputs: only its timeline so far, and says where."""
+    if res.divergence is None:
+        return
+    d = res.divergence
+    t_rel = (d.stamp_ns - min(v.start_ns for v in inputs)) * 1e-9
+    diag = layout.diverged_timeline(name)
+    write_csv_atomic(diag, pd.DataFrame(res.timeline))
+    raise CvslamError(
+        f"{layout.root}: the {kind} filter diverged for {d.vehicle} at stamp {d.stamp_ns} ns "
+        f"({t_rel:.2f} s into the run): {d.reason}; no outputs written (timeline so far: "
+        f"{diag})"
+    )
+
+
+def _vehicle_fuse(
+    v: VehicleInput, res: SlamResult, dr: VehicleTrack, truth: PoseTable
+) -> VehicleFuse:
+    """The summary of one vehicle's estimate: errors against the truth (and the dead
+    reckoning's), distance, final sigma, loop closures, when it was localised."""
+    tr = res.tracks[v.name]
+    fe, rmse = _errors(tr, truth)
+    fe_dr, rmse_dr = _errors(dr, truth)
+    steps = np.diff(tr.p_nav_m, axis=0)
+    loops = sum(1 for e in res.events if e["event"] == "loop_closure" and e["vehicle"] == v.name)
+    localised_after_s: float | None = 0.0
+    if not v.pose_known:
+        found = [
+            e["stamp_ns"]
+            for e in res.events
+            if e["event"] == "localisation" and e["vehicle"] == v.name
+        ]
+        localised_after_s = (found[0] - v.start_ns) * 1e-9 if found else None
+    return VehicleFuse(
+        frames=len(tr.stamps_ns),
+        model=v.model.kind,
+        distance_m=float(np.sum(np.linalg.norm(steps, axis=1))),
+        final_error_m=fe,
+        final_error_deadreckoning_m=fe_dr,
+        rmse_m=rmse,
+        rmse_deadreckoning_m=rmse_dr,
+        final_sigma_m=float(np.sqrt(np.trace(tr.pose_cov[-1][:3, :3])))
+        if len(tr.stamps_ns)
+        else float("nan"),
+        loop_closures=loops,
+        localised_after_s=localised_after_s,
+    )
+
+
+def _record_summary(
+    cfg: Config, summary: FuseSummary, inputs: list[VehicleInput]
+) -> dict[str, Any]:
+    """The fuse run's summary in run.yaml."""
+    return {
+        "filter": summary.filter,
+        "mode": _mode(summary.single),
+        "vehicles": {k: _plain(vars(x)) for k, x in summary.vehicles.items()},
+        "landmarks": summary.landmarks,
+        "realtime_factor": round(float(summary.realtime_factor), 2),
+        "gamma_raised": summary.gamma_raised,
+        "initial_pose": {v.name: initial_pose_source(cfg.fuse, v.name) for v in inputs},
+    }
 
 
 # --------------------------------------------------------------------------- stage
@@ -482,95 +564,30 @@ def run(
     progress: bool = False,
 ) -> FuseSummary:
     kind = filter_kind or cfg.fuse.filter
-    name = output_name(kind, single)
-    out_dir = run_dir / name
-    files = _feature_files(run_dir)
-    loaded = [load_features(p) for p in files]
-    features = {fs.vehicle: fs for fs, _ in loaded}
-    logs_used = list(log_paths) or find_logs(run_dir, [m for _, m in loaded])
+    layout = RunLayout(run_dir)
+    out = layout.fuse(fuse_name(kind, single))
+    files, features, metas = _load_features(layout)
+    logs_used = list(log_paths) or layout.find_logs(metas)
     rd = RunDir(run_dir)
-    outputs = [out_dir / "timeline.csv", out_dir / "map.csv", out_dir / "result.mcap"]
-    outputs += [out_dir / f"{v}.tum" for v in features]
-    plan = rd.plan(name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)
+    outputs = _outputs(out, list(features))
+    plan = rd.plan(out.name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)
     if plan.action == "skip":
-        log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out_dir)
-        return FuseSummary(out_dir, True, kind, single, {}, 0, 0.0, 0.0, 0)
+        log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out.path)
+        return FuseSummary(out.path, True, kind, single, {}, 0, 0.0, 0.0, 0)
     logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     settings = slam_settings(cfg.fuse, kind)
-    n_frames = sum(int(np.sum(v.features.frame_stamp_ns >= v.start_ns)) for v in inputs)
-    t0 = time.perf_counter()
-    bar = tqdm(
-        total=n_frames, desc=f"fuse ({kind})", unit="frame", disable=None if progress else True,
-        leave=False,
-    )  # fmt: skip
-    # one BLAS thread: the filter's matrices (hundreds of rows) are too small to gain from
-    # threads, and OpenBLAS's thread hand-offs made every update ~3x slower on 2 cores
-    with bar, threadpool_limits(limits=1, user_api="blas"):
-        if single:
-            res = merge_results([Slam([v], settings, progress=bar.update).run() for v in inputs])
-        else:
-            res = Slam(inputs, settings, progress=bar.update).run()
-    wall = time.perf_counter() - t0
+    res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress)
     dr = {v.name: dead_reckoning_track(v) for v in inputs}
-    if res.divergence is not None:
-        d = res.divergence
-        t_rel = (d.stamp_ns - min(v.start_ns for v in inputs)) * 1e-9
-        diag = run_dir / f"{name}_diverged_timeline.csv"
-        write_csv_atomic(diag, pd.DataFrame(res.timeline))
-        raise CvslamError(
-            f"{run_dir}: the {kind} filter diverged for {d.vehicle} at stamp {d.stamp_ns} ns "
-            f"({t_rel:.2f} s into the run): {d.reason}; no outputs written (timeline so far: "
-            f"{diag})"
-        )
+    _refuse_diverged(res, inputs, layout, out.name, kind)
     span_s = max((v.features.frame_stamp_ns[-1] - v.start_ns) * 1e-9 for v in inputs)
-    header = f"cvslam {__version__} fuse ({kind}), nav frame NED, body FRD; run {run_dir.resolve()}"
-    meta = {
-        "filter": kind,
-        "mode": "single" if single else "cooperative",
-        "cvslam_version": __version__,
-        "run_dir": str(run_dir.resolve()),
-    }
-    tmp = run_dir / f"{name}.partial"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    _write_outputs(tmp, res, dr, header, meta)
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    tmp.rename(out_dir)
-    vehicles = {}
-    for v in inputs:
-        tr, dtr = res.tracks[v.name], dr[v.name]
-        fe, rmse = _errors(tr, truth[v.name])
-        fe_dr, rmse_dr = _errors(dtr, truth[v.name])
-        steps = np.diff(tr.p_nav_m, axis=0)
-        loops = sum(
-            1 for e in res.events if e["event"] == "loop_closure" and e["vehicle"] == v.name
+    with atomic_dir(out.path) as tmp:
+        _write_outputs(
+            FuseFolder(tmp), res, dr, _header(kind, run_dir), _metadata(kind, single, run_dir)
         )
-        localised_after_s: float | None = 0.0
-        if not v.pose_known:
-            found = [
-                e["stamp_ns"]
-                for e in res.events
-                if e["event"] == "localisation" and e["vehicle"] == v.name
-            ]
-            localised_after_s = (found[0] - v.start_ns) * 1e-9 if found else None
-        vehicles[v.name] = VehicleFuse(
-            frames=len(tr.stamps_ns),
-            model=v.model.kind,
-            distance_m=float(np.sum(np.linalg.norm(steps, axis=1))),
-            final_error_m=fe,
-            final_error_deadreckoning_m=fe_dr,
-            rmse_m=rmse,
-            rmse_deadreckoning_m=rmse_dr,
-            final_sigma_m=float(np.sqrt(np.trace(tr.pose_cov[-1][:3, :3])))
-            if len(tr.stamps_ns)
-            else float("nan"),
-            loop_closures=loops,
-            localised_after_s=localised_after_s,
-        )
+    vehicles = {v.name: _vehicle_fuse(v, res, dr[v.name], truth[v.name]) for v in inputs}
     summary = FuseSummary(
-        out_dir,
+        out.path,
         False,
         kind,
         single,
@@ -580,21 +597,7 @@ def run(
         span_s / wall if wall > 0 else float("inf"),
         res.gamma_raised,
     )
-    rd.record(
-        name,
-        plan,
-        outputs,
-        {
-            "filter": kind,
-            "mode": "single" if single else "cooperative",
-            "vehicles": {k: _plain(vars(x)) for k, x in vehicles.items()},
-            "landmarks": summary.landmarks,
-            "realtime_factor": round(float(summary.realtime_factor), 2),
-            "gamma_raised": res.gamma_raised,
-            "initial_pose": {v.name: initial_pose_source(cfg.fuse, v.name) for v in inputs},
-        },
-        wall,
-    )
+    rd.record(out.name, plan, outputs, _record_summary(cfg, summary, inputs), wall)
     return summary
 
 

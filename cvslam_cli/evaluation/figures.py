@@ -3,7 +3,7 @@
 Every builder takes arrays and DataFrames (no file reading here) and returns a
 `matplotlib.figure.Figure` made with the object-oriented API on the Agg canvas: no pyplot,
 no figure manager, no global state beyond the style applied while a figure is built and
-saved. Sizes are fixed (`DPI`, the `*_SIZE_IN` constants; `save_png` writes exactly
+rendered. Sizes are fixed (`DPI`, the `*_SIZE_IN` constants; `png_bytes` renders exactly
 width x height x `DPI` pixels) and the output is deterministic.
 
 The nav frame is NED (x north, y east, z down); figures show north, east and height (-z)
@@ -29,10 +29,9 @@ Figures comparing runs of one vehicle (errors, RMSE bars) colour by run label in
 from __future__ import annotations
 
 import contextlib
-import os
+import io
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import matplotlib
 import matplotlib.style
@@ -59,7 +58,6 @@ MOSAIC_PANEL_IN = (4.5, 5.0)  # width, height of one mosaic panel
 BARS_SIZE_IN = (8.0, 4.5)
 LOG_ERROR_RATIO = 20.0  # error_over_time: log y axis when the RMSEs differ more than this
 
-MERGED_MOSAIC = "all"  # `cvslam mosaic`'s name of the merged mosaic
 LOOP_CLOSURE = "loop_closure"
 CROSS_VEHICLE = "cross_vehicle"
 
@@ -560,10 +558,10 @@ def _rgb_image(name: str, image: np.ndarray) -> np.ndarray:
     return img[..., [2, 1, 0, 3]] if img.shape[2] == 4 else img[..., ::-1]
 
 
-def mosaics(images: dict[str, np.ndarray]) -> Figure:
+def mosaics(images: dict[str, np.ndarray], *, merged: str) -> Figure:
     """Paper Figs. 19-21: the mosaics side by side in `images`' order (north up), one axis
-    each titled with its name ("all" is the merged mosaic). Images are uint8 grey, BGR, or
-    BGRA whose alpha marks no-data (shown transparent, on the white figure)."""
+    each titled with its name (`merged` names the merged mosaic). Images are uint8 grey,
+    BGR, or BGRA whose alpha marks no-data (shown transparent, on the white figure)."""
     n = max(len(images), 1)
     with _style():
         fig = _figure((MOSAIC_PANEL_IN[0] * n, MOSAIC_PANEL_IN[1]))
@@ -574,7 +572,7 @@ def mosaics(images: dict[str, np.ndarray]) -> Figure:
                 ax.imshow(img, cmap="gray", vmin=0, vmax=255)
             else:
                 ax.imshow(img)
-            title = "all vehicles (merged)" if name == MERGED_MOSAIC else name
+            title = "all vehicles (merged)" if name == merged else name
             ax.set_title(f"{title}  ({img.shape[1]} x {img.shape[0]} px, north up)")
             ax.set_axis_off()
     return fig
@@ -617,18 +615,14 @@ def headline_bars(table: pd.DataFrame) -> Figure:
     return fig
 
 
-def save_png(fig: Figure, path: Path) -> None:
-    """Write `fig` as a PNG of exactly its size x `DPI` pixels to `path`, atomically (to
-    `<name>.partial`, renamed when complete; removed on failure), then close it (clear it;
-    it must not be used afterwards)."""
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
+def png_bytes(fig: Figure) -> bytes:
+    """`fig` rendered as a PNG of exactly its size x `DPI` pixels (no software stamp, so the
+    same figure gives the same bytes), then closed (cleared; it must not be used afterwards).
+    Rendering stays in memory: writing the bytes to a file is the stage's (`io/atomic.py`)."""
+    buf = io.BytesIO()
     try:
         with _style():
-            fig.savefig(partial, format="png", dpi=fig.dpi, metadata={"Software": None})
-        os.replace(partial, path)
-    except BaseException:
-        partial.unlink(missing_ok=True)
-        raise
+            fig.savefig(buf, format="png", dpi=fig.dpi, metadata={"Software": None})
     finally:
         fig.clear()
+    return buf.getvalue()

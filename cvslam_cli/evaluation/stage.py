@@ -9,18 +9,18 @@ logs' ground-truth topic. Per estimate and vehicle (`metrics.py`, evo's definiti
 (as % of the distance), final drift (m and % of the path), NEES of the position where the
 fuse run wrote pose covariances (mean, and the fraction inside the chi-square band).
 
-Outputs, in `<run>/eval.partial/` renamed to `<run>/eval/` when complete: `metrics.json`,
+Outputs, in `<run>/eval/` (written as a whole folder, atomically: `io/atomic.py`): `metrics.json`,
 `metrics.csv` (one row per estimate and vehicle), `headline.csv`, `figures/*.png`,
 `report.html`.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
-import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,32 +28,47 @@ from typing import Any
 import cv2
 import numpy as np
 import pandas as pd
+from matplotlib.figure import Figure
 
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, EvalConfig, dump_config
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.estimation.stage import find_logs
 from cvslam_cli.evaluation import figures as figs
 from cvslam_cli.evaluation import metrics as mtr
 from cvslam_cli.evaluation.report import FigureEntry, render_report
+from cvslam_cli.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
 from cvslam_cli.io.logs import LogSet, ground_truth_tables
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.rundir import RunDir, input_record, write_text_atomic
+from cvslam_cli.io.run_layout import (
+    DEADRECKONING,
+    EVAL,
+    EXTRACT_STAGE,
+    FUSE,
+    FUSE_EKF,
+    FUSE_EKF_SINGLE,
+    FUSE_SINGLE,
+    MERGED_MOSAIC,
+    MOSAIC,
+    EvalFolder,
+    FuseFolder,
+    MosaicFolder,
+    RunLayout,
+)
+from cvslam_cli.io.rundir import RunDir, input_record
 from cvslam_cli.io.trajectory import PoseTable, read_kitti, read_tum
 
 log = logging.getLogger("cvslam")
 
 # fuse folder -> label, in the report's order
 RUN_LABELS = {
-    "fuse": "cooperative NH-inf",
-    "fuse_single": "single NH-inf",
-    "fuse_ekf": "cooperative EKF",
-    "fuse_ekf_single": "single EKF",
+    FUSE: "cooperative NH-inf",
+    FUSE_SINGLE: "single NH-inf",
+    FUSE_EKF: "cooperative EKF",
+    FUSE_EKF_SINGLE: "single EKF",
 }
 DR_LABEL = "dead reckoning"
-MOSAIC_DIR = "mosaic"
 
 
 @dataclass(frozen=True)
@@ -68,7 +83,7 @@ class EvalSummary:
 
 @dataclass(frozen=True, eq=False)
 class _Estimate:
-    run: str  # fuse folder, or "deadreckoning"
+    run: str  # fuse folder, or DEADRECKONING
     label: str
     vehicle: str
     table: PoseTable
@@ -79,12 +94,14 @@ class _Estimate:
 # --------------------------------------------------------------------------- inputs
 
 
-def _runs_present(run_dir: Path) -> list[str]:
-    return [r for r in RUN_LABELS if (run_dir / r).is_dir() and any((run_dir / r).glob("*.tum"))]
-
-
-def _vehicles_of(folder: Path) -> list[str]:
-    return sorted(p.stem for p in folder.glob("*.tum") if not p.stem.endswith("_deadreckoning"))
+def _fuse_runs(layout: RunLayout) -> list[FuseFolder]:
+    """The fuse folders with trajectories, in the report's order."""
+    runs = [f for f in map(layout.fuse, RUN_LABELS) if f.has_trajectories()]
+    if not runs:
+        raise CvslamError(
+            f"{layout.root}: no fuse output (fuse*/<vehicle>.tum); run `cvslam fuse` first"
+        )
+    return runs
 
 
 def _read_trajectory(path: Path) -> PoseTable:
@@ -125,7 +142,7 @@ def _gt_from_files(
 
 def _logs(cfg: Config, run_dir: Path, log_paths: Sequence[Path]) -> tuple[LogSet, list[Path]]:
     _, metas = feature_frame_index(run_dir)
-    logs_used = list(log_paths) or find_logs(run_dir, metas)
+    logs_used = list(log_paths) or RunLayout(run_dir).find_logs(metas)
     return LogSet([McapLogSource(p) for p in logs_used], cfg.logs), logs_used
 
 
@@ -161,26 +178,27 @@ def _ground_truth(
     return ground_truth_tables(logs, have), logs_used, "the logs' ground-truth topic"
 
 
-def _estimates(run_dir: Path, runs: list[str], vehicles: list[str]) -> list[_Estimate]:
+def _estimates(runs: list[FuseFolder], vehicles: list[str]) -> list[_Estimate]:
+    """Each run's estimate of each vehicle (with its pose covariances where they match its
+    stamps), then the dead reckoning of the first run."""
     out: list[_Estimate] = []
     for r in runs:
         for v in vehicles:
-            path = run_dir / r / f"{v}.tum"
+            path = r.trajectory(v)
             if not path.exists():
                 continue
-            cov_path = run_dir / r / f"{v}_pose_cov.npz"
+            cov_path = r.pose_covariances(v)
             table = read_tum(path)
             cov = None
             if cov_path.exists():
                 st, c = load_pose_covariances(cov_path)
                 if len(st) == len(table) and np.array_equal(st, table.stamps_ns):
                     cov = c
-            out.append(_Estimate(r, RUN_LABELS[r], v, table, cov, path))
-    dr_dir = run_dir / runs[0]
+            out.append(_Estimate(r.name, RUN_LABELS[r.name], v, table, cov, path))
     for v in vehicles:
-        path = dr_dir / f"{v}_deadreckoning.tum"
+        path = runs[0].trajectory(v, deadreckoning=True)
         if path.exists():
-            out.append(_Estimate("deadreckoning", DR_LABEL, v, read_tum(path), None, path))
+            out.append(_Estimate(DEADRECKONING, DR_LABEL, v, read_tum(path), None, path))
     return out
 
 
@@ -243,6 +261,26 @@ def _nees_band(cfg: EvalConfig) -> tuple[float, float]:
     return mtr.nees_chi2_band(3, 1, cfg.nees_band_probability)
 
 
+def _all_metrics(
+    estimates: list[_Estimate], truth: dict[str, PoseTable], truth_source: str, cfg: EvalConfig
+) -> tuple[list[dict[str, Any]], dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]]:
+    """(one metrics row per estimate, the NEES over time per (run, vehicle) that has one)."""
+    rows = []
+    nees_of = {}
+    for e in estimates:
+        try:
+            row, nees_series = _metrics(e, truth[e.vehicle], cfg)
+        except ValueError as exc:  # no matching stamps, degenerate alignment
+            raise CvslamError(
+                f"{e.path}: cannot be compared with the ground truth of {e.vehicle} "
+                f"({truth_source}): {exc}"
+            ) from None
+        rows.append(row)
+        if nees_series is not None:
+            nees_of[(e.run, e.vehicle)] = nees_series
+    return rows, nees_of
+
+
 def _headline(metrics: pd.DataFrame) -> pd.DataFrame:
     """ATE RMSE per vehicle (rows) and estimate (columns, in report order)."""
     order = [*RUN_LABELS.values(), DR_LABEL]
@@ -273,41 +311,30 @@ def _truth_series(vehicle: str, truth: PoseTable, t0_ns: int) -> figs.Series:
     return figs.Series(vehicle, "ground truth", (truth.stamps_ns - t0_ns) * 1e-9, truth.p_m)
 
 
-def _figures(
-    run_dir: Path,
-    out: Path,
-    estimates: list[_Estimate],
-    truth: dict[str, PoseTable],
-    headline: pd.DataFrame,
-    nees_of: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]],
-    cfg: EvalConfig,
-) -> list[FigureEntry]:
-    figdir = out / "figures"
-    figdir.mkdir(parents=True, exist_ok=True)
-    entries: list[FigureEntry] = []
-    t0 = min(int(t.stamps_ns[0]) for t in truth.values())
-    by = {(e.run, e.vehicle): e for e in estimates}
-    main_run = next((r for r in RUN_LABELS if any(k[0] == r for k in by)), None)
-    vehicles = sorted(truth)
+# (figure, file name, title, caption), in the report's order
+_Figure = tuple[Figure, str, str, str]
+_Estimates = dict[tuple[str, str], _Estimate]  # by (run, vehicle)
 
-    def add(fig: Any, name: str, title: str, caption: str) -> None:
-        path = figdir / f"{name}.png"
-        figs.save_png(fig, path)
-        entries.append(FigureEntry(path, title, caption))
 
-    add(
+def _headline_figure(headline: pd.DataFrame, cfg: EvalConfig) -> Iterator[_Figure]:
+    yield (
         figs.headline_bars(headline),
         "headline",
         "Position error (ATE RMSE) per vehicle and estimate",
         "Root mean square position error against the ground truth, no alignment unless "
         f"configured (eval.align = {cfg.align}).",
     )
-    for v in vehicles:
+
+
+def _position_figures(
+    by: _Estimates, truth: dict[str, PoseTable], main_run: str | None, t0: int
+) -> Iterator[_Figure]:
+    for v in sorted(truth):
         est = by.get((main_run, v)) if main_run else None
         if est is None:
             continue
-        dr = by.get(("deadreckoning", v))
-        add(
+        dr = by.get((DEADRECKONING, v))
+        yield (
             figs.position_components(
                 _truth_series(v, truth[v], t0), _series(est, t0), _series(dr, t0) if dr else None
             ),
@@ -316,46 +343,55 @@ def _figures(
             f"North, east and height of {v}: ground truth, dead reckoning and the "
             f"{est.label} estimate with its 3-sigma band.",
         )
-    tl_path = run_dir / (main_run or "fuse") / "timeline.csv"
-    ev_path = run_dir / (main_run or "fuse") / "events.csv"
-    map_path = run_dir / (main_run or "fuse") / "map.csv"
-    if main_run and map_path.exists():
-        table = read_map_csv(map_path)
+
+
+def _map_and_timeline_figures(
+    fuse: FuseFolder, by: _Estimates, truth: dict[str, PoseTable], main_run: str | None, t0: int
+) -> Iterator[_Figure]:
+    """The map from above (with the main run), the landmark uncertainty and the feature
+    counts over time from `fuse`'s timeline and events."""
+    vehicles = sorted(truth)
+    if main_run and fuse.map_csv.exists():
+        table = read_map_csv(fuse.map_csv)
         tracks = [_series(by[(main_run, v)], t0) for v in vehicles if (main_run, v) in by]
         truths = [_truth_series(v, truth[v], t0) for v in vehicles]
-        add(
+        yield (
             figs.top_view(tracks, truths, table.p_nav_m[:, :2], list(table.observers)),
             "top_view",
             "Trajectories and map from above (paper Fig. 11)",
             "Estimated (solid) and true (dashed) paths of every vehicle and the landmark map, "
             "coloured by the vehicle that observed each landmark.",
         )
-    if tl_path.exists() and ev_path.exists():
-        timeline = pd.read_csv(tl_path)
-        events = pd.read_csv(ev_path)
-        add(
+    if fuse.timeline.exists() and fuse.events.exists():
+        timeline = pd.read_csv(fuse.timeline)
+        events = pd.read_csv(fuse.events)
+        yield (
             figs.landmark_uncertainty(timeline, events, t0),
             "landmark_uncertainty",
             "Landmark uncertainty over time (paper Fig. 12)",
             "RMS standard deviation of the landmarks updated in each frame; loop closures "
             "(lines) and re-observations of other vehicles' landmarks (type 2, shaded).",
         )
-        add(
+        yield (
             figs.feature_counts(timeline, t0),
             "feature_counts",
             "Features per frame by type",
             "Type 1: re-observations of the vehicle's own landmarks; type 2: landmarks mapped "
             "by another vehicle; type 3: new landmarks.",
         )
-    for v in vehicles:
-        pairs = [
-            ("fuse_single", "fuse", "single vs cooperative (paper Fig. 13/17)", "coop"),
-            ("fuse_ekf", "fuse", "EKF vs NH-infinity", "filters"),
-        ]
+
+
+def _comparison_figures(by: _Estimates, truth: dict[str, PoseTable], t0: int) -> Iterator[_Figure]:
+    """Position errors of runs compared, where both runs of a pair were made."""
+    pairs = [
+        (FUSE_SINGLE, FUSE, "single vs cooperative (paper Fig. 13/17)", "coop"),
+        (FUSE_EKF, FUSE, "EKF vs NH-infinity", "filters"),
+    ]
+    for v in sorted(truth):
         for a, b, what, tag in pairs:
-            ests = [by[(r, v)] for r in (a, b, "deadreckoning") if (r, v) in by]
+            ests = [by[(r, v)] for r in (a, b, DEADRECKONING) if (r, v) in by]
             if (a, v) in by and (b, v) in by:
-                add(
+                yield (
                     figs.error_over_time(
                         _truth_series(v, truth[v], t0),
                         [_series(e, t0) for e in ests],
@@ -365,11 +401,20 @@ def _figures(
                     f"{v}: position error, {what}",
                     "Position error against the ground truth over time; RMSE in the legend.",
                 )
+
+
+def _nees_figure(
+    nees_of: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]],
+    vehicles: list[str],
+    main_run: str | None,
+    t0: int,
+    cfg: EvalConfig,
+) -> Iterator[_Figure]:
     main_nees = {v: nees_of[(main_run, v)] for v in vehicles if (main_run, v) in nees_of}
     nees_t = {v: (st - t0) * 1e-9 for v, (st, _) in main_nees.items()}
     nees = {v: n for v, (_, n) in main_nees.items()}
     if nees:
-        add(
+        yield (
             figs.nees_over_time(
                 nees_t,
                 nees,
@@ -382,26 +427,135 @@ def _figures(
             f"({RUN_LABELS[main_run]}) and the {100 * cfg.nees_band_probability:.0f} % "
             "chi-square band (3 dof): a consistent filter stays inside it.",
         )
-    mosaic_dir = run_dir / MOSAIC_DIR
-    if mosaic_dir.is_dir():
-        images = {}
-        for name in [*vehicles, "all"]:
-            p = mosaic_dir / f"{name}.png"
-            if p.exists():
-                img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-                scale = 1200.0 / max(img.shape[:2])
-                if scale < 1:
-                    img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-                images[name] = img
-        if images:
-            add(
-                figs.mosaics(images),
-                "mosaics",
-                "Ground mosaics (paper Figs. 19-21)",
-                "Each vehicle's mosaic from its fused poses and the merged one: the team covers "
-                "more ground than any one vehicle (docs/mosaic.md).",
-            )
+
+
+def _mosaic_figure(mosaic: MosaicFolder, vehicles: list[str]) -> Iterator[_Figure]:
+    """The fused mosaics of every vehicle and the merged one, at most 1200 px each."""
+    if not mosaic.path.is_dir():
+        return
+    images = {}
+    for name in [*vehicles, MERGED_MOSAIC]:
+        p = mosaic.image(name)
+        if p.exists():
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            scale = 1200.0 / max(img.shape[:2])
+            if scale < 1:
+                img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            images[name] = img
+    if images:
+        yield (
+            figs.mosaics(images, merged=MERGED_MOSAIC),
+            "mosaics",
+            "Ground mosaics (paper Figs. 19-21)",
+            "Each vehicle's mosaic from its fused poses and the merged one: the team covers "
+            "more ground than any one vehicle (docs/mosaic.md).",
+        )
+
+
+def _figures(
+    layout: RunLayout,
+    out: EvalFolder,
+    estimates: list[_Estimate],
+    truth: dict[str, PoseTable],
+    headline: pd.DataFrame,
+    nees_of: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]],
+    cfg: EvalConfig,
+) -> list[FigureEntry]:
+    """Every figure of the report, each written as soon as it is made (one in memory)."""
+    t0 = min(int(t.stamps_ns[0]) for t in truth.values())
+    by = {(e.run, e.vehicle): e for e in estimates}
+    main_run = next((r for r in RUN_LABELS if any(k[0] == r for k in by)), None)
+    vehicles = sorted(truth)
+    made = itertools.chain(
+        _headline_figure(headline, cfg),
+        _position_figures(by, truth, main_run, t0),
+        _map_and_timeline_figures(layout.fuse(main_run or FUSE), by, truth, main_run, t0),
+        _comparison_figures(by, truth, t0),
+        _nees_figure(nees_of, vehicles, main_run, t0, cfg),
+        _mosaic_figure(layout.mosaic(), vehicles),
+    )
+    entries: list[FigureEntry] = []
+    for fig, name, title, caption in made:
+        path = out.figure(name)
+        write_bytes_atomic(path, figs.png_bytes(fig))
+        entries.append(FigureEntry(path, title, caption))
     return entries
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _provenance(
+    rd: RunDir, truth_source: str, truth_files: list[Path], runs: list[FuseFolder], align: str
+) -> dict[str, str]:
+    """Where the report's data came from: the truth's files, the stages that made the
+    estimates and mosaics."""
+    provenance = {
+        "run directory": str(rd.path.resolve()),
+        "ground truth": truth_source,
+        "cvslam version": __version__,
+        "evaluated": time.strftime("%Y-%m-%d %H:%M:%S %z"),
+        "alignment": align,
+        **{f"input {r['path']}": f"sha256 {r['sha256'][:16]}..., {r['size']} bytes"
+           for r in map(input_record, truth_files)},
+    }  # fmt: skip
+    stages = rd.load().get("stages", {})
+    for name in (*(r.name for r in runs), MOSAIC, EXTRACT_STAGE):
+        if name in stages:
+            st = stages[name]
+            provenance[f"stage {name}"] = (
+                f"{st.get('finished', '?')}, config {st.get('config_digest', '?')}"
+            )
+    return provenance
+
+
+def _metrics_json(
+    headline: pd.DataFrame, rows: list[dict[str, Any]], truth_source: str, align: str
+) -> dict[str, Any]:
+    return {
+        "cvslam_version": __version__,
+        "align": align,
+        "ground_truth": truth_source,
+        "headline_ate_rmse_m": {
+            v: {k: _num(x) for k, x in row.items()} for v, row in headline.iterrows()
+        },
+        "estimates": [{k: _num(x) for k, x in r.items()} for r in rows],
+    }
+
+
+def _report_html(
+    cfg: Config,
+    run_dir: Path,
+    n_vehicles: int,
+    estimates: list[_Estimate],
+    headline: pd.DataFrame,
+    metrics: pd.DataFrame,
+    entries: list[FigureEntry],
+    provenance: dict[str, str],
+) -> str:
+    return render_report(
+        title=f"cvslam evaluation: {run_dir.name}",
+        subtitle=f"{n_vehicles} vehicle(s), estimates: "
+        + ", ".join(dict.fromkeys(e.label for e in estimates)),
+        headline=headline,
+        headline_note="ATE RMSE in metres against the ground truth "
+        f"({'no alignment' if cfg.eval.align == 'none' else cfg.eval.align + ' alignment'}).",
+        figures=entries,
+        metrics=metrics.set_index("vehicle"),
+        config_yaml=dump_config(cfg),
+        provenance=provenance,
+    )
+
+
+def _record_summary(metrics_json: dict[str, Any], figures: int) -> dict[str, Any]:
+    """The eval run's summary in run.yaml."""
+    return {
+        "headline_ate_rmse_m": {
+            v: {k: None if x is None else round(x, 4) for k, x in row.items()}
+            for v, row in metrics_json["headline_ate_rmse_m"].items()
+        },
+        "figures": figures,
+    }
 
 
 # --------------------------------------------------------------------------- stage
@@ -416,111 +570,40 @@ def run(
     force: bool = False,
 ) -> EvalSummary:
     t_start = time.perf_counter()
+    layout = RunLayout(run_dir)
     rd = RunDir(run_dir)
-    runs = _runs_present(run_dir)
-    if not runs:
-        raise CvslamError(
-            f"{run_dir}: no fuse output (fuse*/<vehicle>.tum); run `cvslam fuse` first"
-        )
-    vehicles = _vehicles_of(run_dir / runs[0])
+    runs = _fuse_runs(layout)
+    vehicles = runs[0].vehicles()
     truth, truth_files, truth_source = _ground_truth(cfg, run_dir, gt, vehicles, log_paths)
-    est_files = sorted(
-        p for r in runs for p in (run_dir / r).iterdir()
-        if p.suffix in (".tum", ".csv", ".npz")
-    )  # fmt: skip
-    mosaic_files = (
-        sorted((run_dir / MOSAIC_DIR).glob("*.png")) if (run_dir / MOSAIC_DIR).is_dir() else []
-    )
-    out_dir = run_dir / "eval"
-    outputs = [out_dir / n for n in ("metrics.json", "metrics.csv", "headline.csv", "report.html")]
-    plan = rd.plan(
-        "eval", cfg, ("eval",), [*truth_files, *est_files, *mosaic_files], outputs, force
-    )
+    est_files = sorted(p for r in runs for p in r.data_files())
+    out = layout.eval
+    outputs = [out.metrics_json, out.metrics_csv, out.headline_csv, out.report_html]
+    inputs = [*truth_files, *est_files, *layout.mosaic().pngs()]
+    plan = rd.plan(EVAL, cfg, ("eval",), inputs, outputs, force)
     if plan.action == "skip":
-        log.info("eval: %s is up to date (same config and inputs); --force to redo it", out_dir)
-        old = pd.read_csv(out_dir / "headline.csv", index_col=0)
-        return EvalSummary(run_dir, out_dir, True, old, pd.read_csv(out_dir / "metrics.csv"))
-    estimates = [e for e in _estimates(run_dir, runs, vehicles) if e.vehicle in truth]
-    rows = []
-    nees_of = {}
-    for e in estimates:
-        try:
-            row, nees_series = _metrics(e, truth[e.vehicle], cfg.eval)
-        except ValueError as exc:  # no matching stamps, degenerate alignment
-            raise CvslamError(
-                f"{e.path}: cannot be compared with the ground truth of {e.vehicle} "
-                f"({truth_source}): {exc}"
-            ) from None
-        rows.append(row)
-        if nees_series is not None:
-            nees_of[(e.run, e.vehicle)] = nees_series
+        log.info("eval: %s is up to date (same config and inputs); --force to redo it", out.path)
+        old = pd.read_csv(out.headline_csv, index_col=0)
+        return EvalSummary(run_dir, out.path, True, old, pd.read_csv(out.metrics_csv))
+    estimates = [e for e in _estimates(runs, vehicles) if e.vehicle in truth]
+    rows, nees_of = _all_metrics(estimates, truth, truth_source, cfg.eval)
     metrics = pd.DataFrame(rows)
     headline = _headline(metrics)
 
-    tmp = out_dir.with_name("eval.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    entries = _figures(run_dir, tmp, estimates, truth, headline, nees_of, cfg.eval)
-    metrics.to_csv(tmp / "metrics.csv", index=False)  # full precision (repr)
-    headline.to_csv(tmp / "headline.csv")
-    provenance = {
-        "run directory": str(run_dir.resolve()),
-        "ground truth": truth_source,
-        "cvslam version": __version__,
-        "evaluated": time.strftime("%Y-%m-%d %H:%M:%S %z"),
-        "alignment": cfg.eval.align,
-        **{f"input {r['path']}": f"sha256 {r['sha256'][:16]}..., {r['size']} bytes"
-           for r in map(input_record, truth_files)},
-    }  # fmt: skip
-    stages = rd.load().get("stages", {})
-    for name in (*runs, MOSAIC_DIR, "extract"):
-        if name in stages:
-            st = stages[name]
-            provenance[f"stage {name}"] = (
-                f"{st.get('finished', '?')}, config {st.get('config_digest', '?')}"
-            )
-    metrics_json = {
-        "cvslam_version": __version__,
-        "align": cfg.eval.align,
-        "ground_truth": truth_source,
-        "headline_ate_rmse_m": {
-            v: {k: _num(x) for k, x in row.items()} for v, row in headline.iterrows()
-        },
-        "estimates": [{k: _num(x) for k, x in r.items()} for r in rows],
-    }
-    write_text_atomic(tmp / "metrics.json", json.dumps(metrics_json, indent=2) + "\n")
-    report_metrics = metrics.set_index("vehicle")
-    html = render_report(
-        title=f"cvslam evaluation: {run_dir.name}",
-        subtitle=f"{len(truth)} vehicle(s), estimates: "
-        + ", ".join(dict.fromkeys(e.label for e in estimates)),
-        headline=headline,
-        headline_note="ATE RMSE in metres against the ground truth "
-        f"({'no alignment' if cfg.eval.align == 'none' else cfg.eval.align + ' alignment'}).",
-        figures=entries,
-        metrics=report_metrics,
-        config_yaml=dump_config(cfg),
-        provenance=provenance,
-    )
-    write_text_atomic(tmp / "report.html", html)
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    tmp.rename(out_dir)
+    with atomic_dir(out.path) as tmp:
+        written = EvalFolder(tmp)
+        entries = _figures(layout, written, estimates, truth, headline, nees_of, cfg.eval)
+        metrics.to_csv(written.metrics_csv, index=False)  # full precision (repr)
+        headline.to_csv(written.headline_csv)
+        provenance = _provenance(rd, truth_source, truth_files, runs, cfg.eval.align)
+        metrics_json = _metrics_json(headline, rows, truth_source, cfg.eval.align)
+        write_text_atomic(written.metrics_json, json.dumps(metrics_json, indent=2) + "\n")
+        html = _report_html(
+            cfg, run_dir, len(truth), estimates, headline, metrics, entries, provenance
+        )
+        write_text_atomic(written.report_html, html)
     wall = time.perf_counter() - t_start
-    rd.record(
-        "eval",
-        plan,
-        outputs,
-        {
-            "headline_ate_rmse_m": {
-                v: {k: None if x is None else round(x, 4) for k, x in row.items()}
-                for v, row in metrics_json["headline_ate_rmse_m"].items()
-            },
-            "figures": len(entries),
-        },
-        wall,
-    )
-    return EvalSummary(run_dir, out_dir, False, headline, metrics, wall)
+    rd.record(EVAL, plan, outputs, _record_summary(metrics_json, len(entries)), wall)
+    return EvalSummary(run_dir, out.path, False, headline, metrics, wall)
 
 
 def _num(x: Any) -> Any:

@@ -40,11 +40,13 @@ from cvslam_cli.geometry.stereo import (
     triangulate,
     triangulation_covariance,
 )
+from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.features_file import save_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.records import StereoFrame
-from cvslam_cli.io.rundir import RunDir, write_text_atomic
+from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
+from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.parallel import STATE, ordered_map
 
 log = logging.getLogger("cvslam")
@@ -192,33 +194,19 @@ def _csv_text(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
-def run(
-    cfg: Config,
-    log_paths: Sequence[Path],
-    run_dir: Path,
-    *,
-    workers: int = 2,
-    force: bool = False,
-    progress: bool = False,
-) -> ExtractSummary:
-    rd = RunDir(run_dir)
-    logs = LogSet([McapLogSource(p) for p in log_paths], cfg.logs)
+def _stereo_vehicles(logs: LogSet) -> list[str]:
     vehicles = [v for v, vt in logs.vehicles.items() if vt.has_stereo]
     if not vehicles:
         raise CvslamError(
             f"{logs.names}: no vehicle with stereo images (left and right image "
             "topics); see logs.vehicles in the config"
         )
-    outputs = [
-        run_dir / "features" / f"{v}{ext}" for v in vehicles for ext in (".npz", "_stats.csv")
-    ]
-    plan = rd.plan("extract", cfg, ("logs", "extract"), list(log_paths), outputs, force)
-    if plan.action == "skip":
-        log.info("extract: %s is up to date (same config and inputs); --force to redo it", run_dir)
-        return ExtractSummary(run_dir, True, {})
-    rigs = {v: logs.rig(v) for v in vehicles}
+    return vehicles
+
+
+def _log_stereo_limits(rigs: dict[str, StereoRig], cfg: ExtractConfig) -> None:
     for v, rig in rigs.items():
-        z_min, max_range = stereo_limits(rig, cfg.extract)
+        z_min, max_range = stereo_limits(rig, cfg)
         log.debug(
             "extract %s: baseline %.3f m, %s, z_min %.2f m (HD_max %.1f px), max range %.0f m",
             v,
@@ -228,6 +216,24 @@ def run(
             rig.left.fx * rig.baseline_m / z_min,
             max_range,
         )
+
+
+@dataclass(frozen=True, eq=False)
+class _Extracted:
+    """Per vehicle: the feature set being built, one stats row per frame, and the seconds
+    its frames took (summed over the workers); the stage's wall time."""
+
+    builders: dict[str, FeatureSetBuilder]
+    rows: dict[str, list[dict[str, Any]]]
+    frame_s: dict[str, float]
+    wall_s: float
+
+
+def _extract(
+    logs: LogSet, rigs: dict[str, StereoRig], cfg: ExtractConfig, workers: int, progress: bool
+) -> _Extracted:
+    """Every stereo frame of the vehicles of `rigs`, in parallel, collected in time order."""
+    vehicles = list(rigs)
     builders = {v: FeatureSetBuilder(v, rig_calibration(rigs[v])) for v in vehicles}
     rows: dict[str, list[dict[str, Any]]] = {v: [] for v in vehicles}
     started = {v: 0.0 for v in vehicles}
@@ -239,42 +245,72 @@ def run(
         total=total, desc="extract", unit="pair", disable=None if progress else True, leave=False
     ) as bar:
         for vehicle, stamp, (left, right, matches, stats) in ordered_map(
-            _job, _frames(logs, vehicles), workers=workers, state={"rigs": rigs, "cfg": cfg.extract}
+            _job, _frames(logs, vehicles), workers=workers, state={"rigs": rigs, "cfg": cfg}
         ):
             builders[vehicle].add_frame(stamp, left, right, matches)
             rows[vehicle].append({"stamp_ns": stamp, **stats})
             started[vehicle] += stats["t_total_s"]
             bar.update(1)
-    wall = time.perf_counter() - t_start
+    return _Extracted(builders, rows, started, time.perf_counter() - t_start)
+
+
+def _vehicle_extract(
+    r: list[dict[str, Any]], unpaired: tuple[int, int], frame_s: float
+) -> VehicleExtract:
+    """The summary of one vehicle's stats rows `r`; `unpaired`: left and right images the
+    logs had no partner for."""
+    n = max(1, len(r))
+    return VehicleExtract(
+        frames=len(r),
+        empty_frames=sum(1 for x in r if x["kp_left"] == 0 or x["kp_right"] == 0),
+        unpaired_left=unpaired[0],
+        unpaired_right=unpaired[1],
+        keypoints_per_frame=sum(x["kp_left"] + x["kp_right"] for x in r) / (2 * n),
+        matches_per_frame=sum(x["points"] for x in r) / n,
+        candidates_per_keypoint=sum(x["candidates_per_kp"] for x in r) / n,
+        wall_s=frame_s,
+    )
+
+
+def run(
+    cfg: Config,
+    log_paths: Sequence[Path],
+    run_dir: Path,
+    *,
+    workers: int = 2,
+    force: bool = False,
+    progress: bool = False,
+) -> ExtractSummary:
+    rd = RunDir(run_dir)
+    layout = RunLayout(run_dir)
+    logs = LogSet([McapLogSource(p) for p in log_paths], cfg.logs)
+    vehicles = _stereo_vehicles(logs)
+    outputs = [p for v in vehicles for p in (layout.feature_file(v), layout.feature_stats(v))]
+    plan = rd.plan(EXTRACT_STAGE, cfg, ("logs", "extract"), list(log_paths), outputs, force)
+    if plan.action == "skip":
+        log.info("extract: %s is up to date (same config and inputs); --force to redo it", run_dir)
+        return ExtractSummary(run_dir, True, {})
+    rigs = {v: logs.rig(v) for v in vehicles}
+    _log_stereo_limits(rigs, cfg.extract)
+    done = _extract(logs, rigs, cfg.extract, workers, progress)
     summaries: dict[str, VehicleExtract] = {}
     for v in vehicles:
-        fs = builders[v].build()
         meta = {
             "producer": f"cvslam extract {__version__}",
             "vehicle": v,
             "inputs": plan.inputs,
             "config": plan.sections["extract"],
         }
-        save_features(fs, run_dir / "features" / f"{v}.npz", meta)
-        write_text_atomic(run_dir / "features" / f"{v}_stats.csv", _csv_text(rows[v]))
-        r = rows[v]
-        n = max(1, len(r))
+        save_features(done.builders[v].build(), layout.feature_file(v), meta)
+        write_text_atomic(layout.feature_stats(v), _csv_text(done.rows[v]))
         vs = logs.stats[v]
-        summaries[v] = VehicleExtract(
-            frames=len(r),
-            empty_frames=sum(1 for x in r if x["kp_left"] == 0 or x["kp_right"] == 0),
-            unpaired_left=vs.unpaired_left,
-            unpaired_right=vs.unpaired_right,
-            keypoints_per_frame=sum(x["kp_left"] + x["kp_right"] for x in r) / (2 * n),
-            matches_per_frame=sum(x["points"] for x in r) / n,
-            candidates_per_keypoint=sum(x["candidates_per_kp"] for x in r) / n,
-            wall_s=started[v],
-        )
+        unpaired = (vs.unpaired_left, vs.unpaired_right)
+        summaries[v] = _vehicle_extract(done.rows[v], unpaired, done.frame_s[v])
     rd.record(
-        "extract",
+        EXTRACT_STAGE,
         plan,
         outputs,
         {"vehicles": {v: asdict(s) for v, s in summaries.items()}, "workers": workers},
-        wall,
+        done.wall_s,
     )
     return ExtractSummary(run_dir, False, summaries)

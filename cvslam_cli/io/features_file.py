@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.features.format import FORMAT_NAME, FORMAT_VERSION, FeatureSet, RigCalibration
 from cvslam_cli.io.npz import save_npz
+from cvslam_cli.io.run_layout import RunLayout
 
 _RIG_FIELDS = ("K", "D", "T_body_cam", "size_px")
 
@@ -92,13 +93,7 @@ def load_frame_index(path: Path) -> tuple[str, NDArray[np.int64], dict[str, Any]
 
 def feature_frame_index(run_dir: Path) -> tuple[dict[str, NDArray[np.int64]], list[dict[str, Any]]]:
     """({vehicle: frame_stamp_ns}, metas) of every feature file of a run directory."""
-    fdir = run_dir / "features"
-    files = sorted(fdir.glob("*.npz")) if fdir.is_dir() else []
-    if not files:
-        raise CvslamError(
-            f"{fdir}: no feature files (<vehicle>.npz); run `cvslam extract` and "
-            "`cvslam fuse` first"
-        )
+    files = RunLayout(run_dir).feature_files("run `cvslam extract` and `cvslam fuse` first")
     stamps, metas = {}, []
     for f in files:
         vehicle, st, meta = load_frame_index(f)

@@ -7,7 +7,7 @@
   and the map as a point cloud;
 - `write_csv_atomic`: any table (timeline, events) as CSV, floats that read back exactly.
 
-Every writer goes to `<name>.partial` and renames when complete; every reader raises a
+Every writer is atomic (`io/atomic.py`); every reader raises a
 one-line `CvslamError` naming the file for anything it cannot use.
 """
 
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,10 +24,10 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
+from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, vehicle_names
 from cvslam_cli.io.npz import save_npz
-from cvslam_cli.io.rundir import write_text_atomic
 from cvslam_cli.io.trajectory import PoseTable
 
 F64 = NDArray[np.float64]
@@ -40,7 +39,7 @@ BoolArray = NDArray[np.bool_]
 
 def write_csv_atomic(path: Path, frame: pd.DataFrame) -> None:
     """Write `frame` as CSV (no index column, `\\n` line ends, NaN as `nan`) to
-    `<name>.partial`, then rename. Floats are written as the shortest text that reads back
+    `path` atomically. Floats are written as the shortest text that reads back
     to the same float64 (pandas' default `repr` formatting, kept explicitly)."""
     text = frame.to_csv(index=False, lineterminator="\n", float_format=None, na_rep="nan")
     write_text_atomic(path, text)
@@ -288,10 +287,7 @@ def write_map_ply(path: Path, table: MapTable) -> None:
         "end_header",
     ]
     data = ("\n".join(lines) + "\n").encode("ascii") + vertices.tobytes()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    write_bytes_atomic(path, data)
 
 
 # -- pose covariances -----------------------------------------------------------------------

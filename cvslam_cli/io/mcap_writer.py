@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import struct
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import cv2
@@ -20,6 +19,7 @@ from mcap_ros2.writer import Writer
 
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
+from cvslam_cli.io.atomic import AtomicFile, AtomicWriter
 from cvslam_cli.io.images import raw_fields
 from cvslam_cli.io.ros2_msgdefs import msgdef_text
 
@@ -194,7 +194,7 @@ def imu_cdr(
     )
 
 
-class LogWriter:
+class LogWriter(AtomicWriter):
     """A ROS 2 MCAP being written. Use as a context manager."""
 
     def __init__(
@@ -205,9 +205,8 @@ class LogWriter:
         compression: str = "zstd",
     ) -> None:
         self.path = Path(path)
-        self.partial = self.path.with_name(self.path.name + ".partial")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = self.partial.open("wb")
+        self._atomic = AtomicFile(self.path)
+        self._file = self._atomic.tmp.open("wb")
         comp = {
             "zstd": CompressionType.ZSTD,
             "lz4": CompressionType.LZ4,
@@ -218,28 +217,14 @@ class LogWriter:
         self._raw_channels: dict[str, int] = {}
         self.count = 0
 
-    def __enter__(self) -> LogWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-
     def close(self) -> None:
         self._writer.finish()
         self._file.close()
-        os.replace(self.partial, self.path)
+        self._atomic.commit()
 
     def abort(self) -> None:
         self._file.close()
-        self.partial.unlink(missing_ok=True)
+        self._atomic.discard()
 
     # -- generic -------------------------------------------------------------------------
 

@@ -10,7 +10,6 @@ metres; give the layer a local engineering CRS, the nav frame has no geodetic da
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -18,11 +17,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
+from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
 
 
 def write_png_atomic(path: Path, image: NDArray[np.uint8], mask: NDArray[np.bool_] | None) -> None:
     """PNG of a grey or BGR image; with `mask`, BGRA with alpha 0 where the mask is False."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     img = image
     if mask is not None:
         bgr = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image
@@ -30,9 +29,7 @@ def write_png_atomic(path: Path, image: NDArray[np.uint8], mask: NDArray[np.bool
     ok, buf = cv2.imencode(".png", img)
     if not ok:
         raise CvslamError(f"{path}: could not encode the PNG image")
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_bytes(buf.tobytes())
-    os.replace(tmp, path)
+    write_bytes_atomic(path, buf.tobytes())
 
 
 def world_file_values(n_max: float, e_min: float, gsd_m: float) -> tuple[float, ...]:
@@ -42,9 +39,7 @@ def world_file_values(n_max: float, e_min: float, gsd_m: float) -> tuple[float, 
 
 def write_world_file(path: Path, n_max: float, e_min: float, gsd_m: float) -> None:
     text = "".join(f"{v:.10f}\n" for v in world_file_values(n_max, e_min, gsd_m))
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(text, encoding="ascii")
-    os.replace(tmp, path)
+    write_text_atomic(path, text, encoding="ascii")
 
 
 def read_world_file(path: Path) -> tuple[float, ...]:

@@ -11,24 +11,23 @@ when closed without error.
 from __future__ import annotations
 
 import io
-import os
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
-from types import TracebackType
 
 import numpy as np
+
+from cvslam_cli.io.atomic import AtomicFile, AtomicWriter
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
-class NpzWriter:
+class NpzWriter(AtomicWriter):
     def __init__(self, path: Path, *, compress: bool = False) -> None:
         self.path = path
-        self.tmp = path.with_name(path.name + ".partial")
-        path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = AtomicFile(path)
         self._method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-        self._zip = zipfile.ZipFile(self.tmp, "w", compression=self._method, allowZip64=True)
+        self._zip = zipfile.ZipFile(self._file.tmp, "w", compression=self._method, allowZip64=True)
 
     def add(self, name: str, array: np.ndarray) -> None:
         buf = io.BytesIO()
@@ -38,20 +37,13 @@ class NpzWriter:
         info.external_attr = 0o644 << 16
         self._zip.writestr(info, buf.getvalue())
 
-    def __enter__(self) -> NpzWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def close(self) -> None:
         self._zip.close()
-        if exc_type is None:
-            os.replace(self.tmp, self.path)
-        else:
-            self.tmp.unlink(missing_ok=True)
+        self._file.commit()
+
+    def abort(self) -> None:
+        self._zip.close()
+        self._file.discard()
 
 
 def save_npz(path: Path, arrays: Mapping[str, np.ndarray], *, compress: bool = False) -> None:

@@ -10,14 +10,13 @@ Before a stage runs, `RunDir.plan` compares that record with the present config 
 - a different config: refuse with one line naming the first key that differs, unless
   `--force` (outputs made with another config must not be silently mixed or replaced).
 
-Every write goes to a temporary name and is renamed when complete.
+`run.yaml` is written atomically (`io/atomic.py`); its name comes from `io/run_layout.py`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -29,8 +28,8 @@ import yaml
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, to_dict
 from cvslam_cli.errors import CvslamError
-
-RUN_FILE = "run.yaml"
+from cvslam_cli.io.atomic import write_text_atomic
+from cvslam_cli.io.run_layout import RunLayout
 
 
 def file_sha256(path: Path) -> str:
@@ -60,13 +59,6 @@ def first_difference(old: Any, new: Any, prefix: str = "") -> str | None:
     return None if old == new else f"{prefix}: {old!r} -> {new!r}"
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-
-
 @dataclass(frozen=True)
 class StagePlan:
     action: Literal["run", "skip"]
@@ -81,7 +73,7 @@ class RunDir:
         self.path = path
         if path.exists() and not path.is_dir():
             raise CvslamError(f"{path}: exists and is not a directory")
-        self.run_file = path / RUN_FILE
+        self.run_file = RunLayout(path).run_file
 
     def load(self) -> dict[str, Any]:
         if not self.run_file.exists():

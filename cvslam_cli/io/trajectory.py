@@ -12,7 +12,6 @@ of the row-major 3x4 matrix [R | t] of `T_world_body`, no stamps and no comments
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
@@ -22,6 +21,7 @@ from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from cvslam_cli.io.atomic import write_text_atomic
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -53,10 +53,7 @@ def write_tum(path: Path, table: PoseTable, *, header: str = "") -> None:
     lines.append("# timestamp_s x y z qx qy qz qw")
     for t, p, q in zip(table.stamps_ns, table.p_m, table.q_xyzw, strict=True):
         lines.append(ns_to_seconds_text(int(t)) + " " + " ".join(f"{v:.9f}" for v in (*p, *q)))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 # -- reading TUM, KITTI --------------------------------------------------------------------
@@ -156,10 +153,7 @@ def write_kitti(path: Path, table: PoseTable) -> None:
     R = quat_xyzw_to_matrix(np.asarray(table.q_xyzw, dtype=np.float64).reshape(-1, 4))
     T = np.concatenate([R, np.asarray(table.p_m, dtype=np.float64).reshape(-1, 3, 1)], axis=2)
     lines = [" ".join(repr(float(v)) for v in m.reshape(12)) for m in T]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text("".join(line + "\n" for line in lines), encoding="utf-8")
-    os.replace(tmp, path)
+    write_text_atomic(path, "".join(line + "\n" for line in lines))
 
 
 def _nearest_rotation(R: F64) -> F64:

@@ -10,7 +10,7 @@ from), the trajectories and landmark map of `<run>/<fuse_dir>/`, the images from
    north-up canvas over all footprints; each vehicle's mosaic is a sub-rectangle of it, so
    every warped image is fed to its vehicle's blender and the merged one unchanged.
 3. One pass over the logs: each selected left image is warped and fed (`blend.py`).
-4. Written to `<run>/mosaic*.partial/` and renamed when complete: `<vehicle>.png`,
+4. Written to `<run>/mosaic*/` as a whole folder, atomically (`io/atomic.py`): `<vehicle>.png`,
    `all.png` (BGRA, alpha 0 where no image fell) with world files, `*_overlay.png` with the
    trajectories and landmarks. The summary in run.yaml gives images used, size, covered
    area per mosaic, and, for a simulated run, the alignment with the true ground texture.
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,16 +32,25 @@ from tqdm import tqdm
 
 from cvslam_cli.config import Config, MosaicConfig
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.estimation.stage import find_logs
+from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
+from cvslam_cli.io.atomic import atomic_dir
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import MapTable, read_map_csv
 from cvslam_cli.io.logs import LogSet, ground_truth_tables
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
 from cvslam_cli.io.records import StereoFrame
+from cvslam_cli.io.run_layout import (
+    MERGED_MOSAIC,
+    FuseFolder,
+    MosaicFolder,
+    RunLayout,
+    SimLayout,
+    mosaic_name,
+)
 from cvslam_cli.io.rundir import RunDir
-from cvslam_cli.io.trajectory import read_tum
+from cvslam_cli.io.trajectory import PoseTable, read_tum
 from cvslam_cli.mosaic.blend import Blended, Compositor
 from cvslam_cli.mosaic.compare import align_to_reference, resample_reference
 from cvslam_cli.mosaic.ground import GroundFitError, GroundModel, fit_ground
@@ -56,14 +64,8 @@ from cvslam_cli.mosaic.project import (
 
 log = logging.getLogger("cvslam")
 
-ALL = "all"
 # BGR colours of the vehicles' tracks in the overlays (matplotlib's tab10)
 PALETTE = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148))
-
-
-def output_name(source: str) -> str:
-    """`mosaic` for fused poses; `mosaic_deadreckoning`, `mosaic_groundtruth` otherwise."""
-    return "mosaic" if source == "fused" else f"mosaic_{source}"
 
 
 @dataclass(frozen=True)
@@ -100,16 +102,19 @@ class _Frame:
     box_ne: np.ndarray
 
 
+@dataclass(frozen=True, eq=False)
+class _Scene:
+    """What warping an image onto the canvas needs: the ground, each vehicle's left camera
+    and view limits, the merged canvas and each vehicle's part of it (row, col, rows, cols)."""
+
+    ground: GroundModel
+    cams: dict[str, CameraModel]
+    limits: dict[str, ViewLimits]
+    grid: CanvasGrid
+    sub_rois: dict[str, tuple[int, int, int, int]]
+
+
 # --------------------------------------------------------------------------- inputs
-
-
-def _trajectory_files(fuse_dir: Path, vehicles: Sequence[str], source: str) -> dict[str, Path]:
-    suffix = "_deadreckoning" if source == "deadreckoning" else ""
-    out = {v: fuse_dir / f"{v}{suffix}.tum" for v in vehicles}
-    for path in out.values():
-        if not path.exists():
-            raise CvslamError(f"{path}: trajectory not found; run `cvslam fuse` first")
-    return out
 
 
 def _landmarks(table: MapTable, max_std_m: float) -> np.ndarray:
@@ -121,7 +126,7 @@ def _true_ground(run_dir: Path, logs_used: Sequence[Path]) -> Any:
     """The simulator's world, from `<run>/truth/` or the `truth/` beside the logs (a
     simulator output directory), or None for real data."""
     for folder in (run_dir, *(p.parent for p in logs_used)):
-        world = load_true_ground(folder / "truth" / "world.npz")
+        world = load_true_ground(SimLayout(folder).world)
         if world is not None:
             return world
     return None
@@ -198,73 +203,71 @@ def _with_overrides(cfg: Config, source: str | None, gsd_m: float | None) -> Con
     return dataclasses.replace(cfg, mosaic=m)
 
 
-def run(
-    cfg: Config,
-    run_dir: Path,
-    *,
-    source: str | None = None,
-    gsd_m: float | None = None,
-    log_paths: Sequence[Path] = (),
-    force: bool = False,
-    progress: bool = False,
-) -> MosaicSummary:
-    cfg = _with_overrides(cfg, source, gsd_m)
-    mc = cfg.mosaic
-    rd = RunDir(run_dir)
-    frame_stamps, metas = feature_frame_index(run_dir)
-    vehicles = sorted(frame_stamps)
-    logs_used = list(log_paths) or find_logs(run_dir, metas)
-    fuse_dir = run_dir / mc.fuse_dir
-    map_path = fuse_dir / "map.csv"
-    if not map_path.exists():
-        raise CvslamError(f"{map_path}: landmark map not found; run `cvslam fuse` first")
-    traj_files = (
-        _trajectory_files(fuse_dir, vehicles, mc.source) if mc.source != "groundtruth" else {}
-    )
-    name = output_name(mc.source)
-    out_dir = run_dir / name
-    names = [*vehicles, ALL]
-    outputs = [out_dir / f"{n}{ext}" for n in names for ext in (".png", ".pgw")]
-    inputs = [*logs_used, map_path, *traj_files.values()]
-    plan = rd.plan(name, cfg, ("mosaic",), inputs, outputs, force)
-    if plan.action == "skip":
-        log.info("mosaic: %s is up to date (same config and inputs); --force to redo it", out_dir)
-        return MosaicSummary(run_dir, out_dir, True, mc.source)
-    t_start = time.perf_counter()
+def _fuse_inputs(fuse: FuseFolder, vehicles: Sequence[str], source: str) -> dict[str, Path]:
+    """The trajectory files the poses come from ({} for the ground truth), checking that the
+    fuse run wrote its landmark map."""
+    if not fuse.map_csv.exists():
+        raise CvslamError(f"{fuse.map_csv}: landmark map not found; run `cvslam fuse` first")
+    if source == "groundtruth":
+        return {}
+    return fuse.trajectories(vehicles, deadreckoning=source == "deadreckoning")
 
-    table = read_map_csv(map_path)
+
+def _open_logs(cfg: Config, logs_used: Sequence[Path], vehicles: Sequence[str]) -> LogSet:
     logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
     missing = [v for v in vehicles if v not in logs.vehicles]
     if missing:
         raise CvslamError(f"{logs.names}: no vehicle {missing[0]!r} (it has features)")
-    tables = (
-        ground_truth_tables(logs, vehicles)
-        if mc.source == "groundtruth"
-        else {v: read_tum(p) for v, p in traj_files.items()}
-    )
-    cams = {v: logs.rig(v).left for v in vehicles}
+    return logs
+
+
+def _poses(
+    logs: LogSet, vehicles: Sequence[str], source: str, traj_files: dict[str, Path]
+) -> dict[str, PoseTable]:
+    """The body poses of each vehicle from the mosaic's source."""
+    if source == "groundtruth":
+        return ground_truth_tables(logs, vehicles)
+    return {v: read_tum(p) for v, p in traj_files.items()}
+
+
+def _ground(
+    table: MapTable,
+    tables: dict[str, PoseTable],
+    cams: dict[str, CameraModel],
+    cfg: MosaicConfig,
+    map_path: Path,
+) -> GroundModel:
+    """The ground fitted to the mapped landmarks, below the cameras' positions."""
     camera_positions = np.vstack(
         [
             tables[v].p_m + quat_xyzw_to_matrix(tables[v].q_xyzw) @ cams[v].T_body_cam[:3, 3]
-            for v in vehicles
+            for v in cams
         ]
     )
     try:
-        ground = fit_ground(
-            _landmarks(table, mc.ground.max_landmark_std_m), camera_positions, mc.ground
+        return fit_ground(
+            _landmarks(table, cfg.ground.max_landmark_std_m), camera_positions, cfg.ground
         )
     except GroundFitError as exc:
         raise CvslamError(f"{map_path}: no ground surface from the landmarks: {exc}") from None
 
-    # -- frames, footprints, canvas
+
+def _frames(
+    frame_stamps: dict[str, np.ndarray],
+    tables: dict[str, PoseTable],
+    cams: dict[str, CameraModel],
+    ground: GroundModel,
+    cfg: MosaicConfig,
+) -> tuple[list[_Frame], dict[str, ViewLimits], list[float]]:
+    """(every n-th frame with a pose and a footprint on the ground, each vehicle's view
+    limits, the ground resolution of about 100 frames per vehicle)."""
     frames: list[_Frame] = []
     limits: dict[str, ViewLimits] = {}
     gsds: list[float] = []
-    for v in vehicles:
-        at = frame_stamps[v][:: mc.every_nth]
+    for v, cam in cams.items():
+        at = frame_stamps[v][:: cfg.every_nth]
         tab = tables[v]
         p, R, ok = interpolate_poses(tab.stamps_ns, tab.p_m, tab.q_xyzw, at)
-        cam = cams[v]
         T = np.zeros((len(at), 4, 4))
         T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, p, 1.0
         T_nav_cam = T @ cam.T_body_cam
@@ -272,7 +275,7 @@ def run(
         if not heights:
             log.warning("mosaic: %s: no pose at any of its frames; no images used", v)
             continue
-        limits[v] = _limits(mc, float(np.median(heights)))
+        limits[v] = _limits(cfg, float(np.median(heights)))
         step = max(1, int(ok.sum()) // 100)
         for k in np.flatnonzero(ok):
             box = footprint_box(cam, T_nav_cam[k], ground, limits[v])
@@ -280,19 +283,27 @@ def run(
                 frames.append(_Frame(v, int(at[k]), T_nav_cam[k], box))
             if k % step == 0:
                 gsds.append(image_gsd_m(cam, T_nav_cam[k], ground, limits[v]))
+    return frames, limits, gsds
+
+
+def _canvas(
+    frames: list[_Frame], gsds: list[float], cfg: MosaicConfig, run_dir: Path
+) -> tuple[CanvasGrid, float]:
+    """(the north-up grid over every footprint, its GSD): the configured GSD, else the
+    images' own but no finer than auto_max_mpx allows; coarser above max_canvas_mpx."""
     if not frames:
         raise CvslamError(f"{run_dir}: no frame sees the ground; nothing to mosaic")
     finite = [g for g in gsds if np.isfinite(g)]
-    if not mc.gsd_m and not finite:
+    if not cfg.gsd_m and not finite:
         raise CvslamError(f"{run_dir}: no ground resolution from the images; give --gsd")
     box_all = _union([f.box_ne for f in frames])
-    gsd = mc.gsd_m
+    gsd = cfg.gsd_m
     if not gsd:  # the images' own resolution, but no finer than auto_max_mpx allows
         area = float((box_all[2] - box_all[0]) * (box_all[3] - box_all[1]))
-        gsd = _two_digits(max(float(np.median(finite)), np.sqrt(area / (mc.auto_max_mpx * 1e6))))
+        gsd = _two_digits(max(float(np.median(finite)), np.sqrt(area / (cfg.auto_max_mpx * 1e6))))
     grid = CanvasGrid.covering(box_all, gsd)
-    if grid.megapixels > mc.max_canvas_mpx:
-        coarser = _two_digits(gsd * np.sqrt(grid.megapixels / mc.max_canvas_mpx))
+    if grid.megapixels > cfg.max_canvas_mpx:
+        coarser = _two_digits(gsd * np.sqrt(grid.megapixels / cfg.max_canvas_mpx))
         log.warning(
             "mosaic: %.0f x %.0f m at %.3g m/px would be %.0f Mpx (mosaic.max_canvas_mpx %.0f); "
             "using %.3g m/px",
@@ -300,28 +311,53 @@ def run(
             box_all[3] - box_all[1],
             gsd,
             grid.megapixels,
-            mc.max_canvas_mpx,
+            cfg.max_canvas_mpx,
             coarser,
         )
         gsd = coarser
         grid = CanvasGrid.covering(box_all, gsd)
-    # each vehicle's canvas: the part of the merged one its frames cover, its origin on the
-    # multiples of the blender's unit so that an image prepared once is added to both
-    unit = 1 << mc.multiband_bands if mc.blend == "multiband" else 1
+    return grid, gsd
+
+
+def _vehicle_rois(
+    frames: list[_Frame], grid: CanvasGrid, cfg: MosaicConfig
+) -> dict[str, tuple[int, int, int, int]]:
+    """Each vehicle's canvas: the part of the merged one its frames cover, its origin on the
+    multiples of the blender's unit so that an image prepared once is added to both."""
+    unit = 1 << cfg.multiband_bands if cfg.blend == "multiband" else 1
     sub_rois = {}
     for v in {f.vehicle for f in frames}:
         roi = grid.roi_of(_union([f.box_ne for f in frames if f.vehicle == v]))
         assert roi is not None
         r0, c0 = roi[0] // unit * unit, roi[1] // unit * unit
         sub_rois[v] = (r0, c0, roi[2] + roi[0] - r0, roi[3] + roi[1] - c0)
+    return sub_rois
+
+
+def _compositors(
+    sub_rois: dict[str, tuple[int, int, int, int]], grid: CanvasGrid, cfg: MosaicConfig
+) -> tuple[dict[str, Compositor], Compositor | None]:
+    """(one blender per vehicle, one for the merged mosaic when there are several)."""
 
     def compositor(shape: tuple[int, int]) -> Compositor:
-        return Compositor(shape, mc.blend, sharpness=mc.feather_sharpness, bands=mc.multiband_bands)
+        return Compositor(
+            shape, cfg.blend, sharpness=cfg.feather_sharpness, bands=cfg.multiband_bands
+        )
 
     comps = {v: compositor(roi[2:]) for v, roi in sub_rois.items()}
-    merged = compositor(grid.shape) if len(comps) > 1 else None
+    return comps, compositor(grid.shape) if len(comps) > 1 else None
 
-    # -- one pass over the images
+
+def _feed_images(
+    logs: LogSet,
+    frames: list[_Frame],
+    scene: _Scene,
+    comps: dict[str, Compositor],
+    merged: Compositor | None,
+    progress: bool,
+) -> tuple[int, float]:
+    """One pass over the logs: each selected left image warped onto the canvas and fed to
+    its vehicle's blender and the merged one; (images fed, seconds it took)."""
     wanted = {(f.vehicle, f.stamp_ns): f for f in frames}
     fed = 0
     t_images = time.perf_counter()
@@ -338,16 +374,22 @@ def run(
             f = wanted.pop((rec.vehicle, rec.stamp_ns), None)
             if f is None:
                 continue
-            roi = grid.roi_of(f.box_ne)
+            roi = scene.grid.roi_of(f.box_ne)
             if roi is not None:
                 img = rec.left.image
                 if img.dtype != np.uint8:  # 16-bit: scale to 8 bits
                     img = cv2.convertScaleAbs(img, alpha=255.0 / max(1.0, float(img.max())))
                 patch, mask = warp_to_canvas(
-                    img, cams[f.vehicle], f.T_nav_cam, ground, grid, roi, limits[f.vehicle]
+                    img,
+                    scene.cams[f.vehicle],
+                    f.T_nav_cam,
+                    scene.ground,
+                    scene.grid,
+                    roi,
+                    scene.limits[f.vehicle],
                 )
                 r0, c0 = roi[0], roi[1]
-                vr0, vc0 = sub_rois[f.vehicle][:2]
+                vr0, vc0 = scene.sub_rois[f.vehicle][:2]
                 if merged is None:
                     comps[f.vehicle].feed(patch, mask, r0 - vr0, c0 - vc0)
                 else:
@@ -360,31 +402,46 @@ def run(
     t_fed = time.perf_counter() - t_images
     if wanted:
         log.warning("mosaic: %d selected frame(s) not found in the logs", len(wanted))
+    return fed, t_fed
 
-    # -- results
-    tmp = out_dir.with_name(out_dir.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    truth = _true_ground(run_dir, logs_used)
-    tracks = {v: tables[v].p_m for v in sorted(comps)}
-    observers = [set(o.split(";")) for o in table.observers]
-    lm_of = {v: table.p_nav_m[np.array([v in o for o in observers], bool)] for v in tracks}
+
+def _blended(
+    comps: dict[str, Compositor], merged: Compositor | None, scene: _Scene
+) -> dict[str, tuple[Blended, CanvasGrid, int]]:
+    """(image, its grid, images fed) of each mosaic: per vehicle and `MERGED_MOSAIC` (the
+    only vehicle's for a single one)."""
     results: dict[str, tuple[Blended, CanvasGrid, int]] = {}
     for v, comp in comps.items():
-        results[v] = (comp.result(), grid.sub(sub_rois[v]), comp.fed)
+        results[v] = (comp.result(), scene.grid.sub(scene.sub_rois[v]), comp.fed)
     if merged is not None:
-        results[ALL] = (merged.result(), grid, merged.fed)
+        results[MERGED_MOSAIC] = (merged.result(), scene.grid, merged.fed)
     else:
-        results[ALL] = results[next(iter(comps))]
+        results[MERGED_MOSAIC] = results[next(iter(comps))]
+    return results
+
+
+def _write_mosaics(
+    out: MosaicFolder,
+    results: dict[str, tuple[Blended, CanvasGrid, int]],
+    tracks: dict[str, np.ndarray],
+    table: MapTable,
+    truth: Any,
+    gsd: float,
+    overlay: bool,
+) -> dict[str, MosaicInfo]:
+    """Each mosaic's image, world file and (with `overlay`) the tracks and landmarks drawn
+    on it; what each covers and, for a simulated run, how it aligns with the true ground."""
+    observers = [set(o.split(";")) for o in table.observers]
+    lm_of = {v: table.p_nav_m[np.array([v in o for o in observers], bool)] for v in tracks}
     infos: dict[str, MosaicInfo] = {}
     for n, (b, g, count) in results.items():
         sub = g.sub((*b.offset_rc, *b.mask.shape))
-        write_png_atomic(tmp / f"{n}.png", b.image, b.mask)
-        write_world_file(tmp / f"{n}.pgw", sub.n_max, sub.e_min, sub.gsd_m)
-        if mc.overlay:
-            sel = tracks if n == ALL else {n: tracks[n]}
-            lms = lm_of if n == ALL else {n: lm_of[n]}
-            write_png_atomic(tmp / f"{n}_overlay.png", _overlay(b, g, sel, lms), None)
+        write_png_atomic(out.image(n), b.image, b.mask)
+        write_world_file(out.world_file(n), sub.n_max, sub.e_min, sub.gsd_m)
+        if overlay:
+            sel = tracks if n == MERGED_MOSAIC else {n: tracks[n]}
+            lms = lm_of if n == MERGED_MOSAIC else {n: lm_of[n]}
+            write_png_atomic(out.overlay(n), _overlay(b, g, sel, lms), None)
         truth_info = None
         if truth is not None:
             ref, ref_ok = resample_reference(truth[0], truth[1], truth[2], sub)
@@ -396,14 +453,79 @@ def run(
             covered_m2=round(b.covered_px * gsd * gsd, 1),
             truth=truth_info,
         )
-    union = _union_coverage(results, grid, sub_rois) if merged is not None else 1.0
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    tmp.rename(out_dir)
+    return infos
+
+
+def _record_summary(
+    summary: MosaicSummary, grid: CanvasGrid, ground: GroundModel
+) -> dict[str, Any]:
+    """The mosaic run's summary in run.yaml."""
+    return {
+        "source": summary.source,
+        "gsd_m": summary.gsd_m,
+        "canvas_px": [grid.shape[1], grid.shape[0]],
+        "ground": {
+            "landmarks": ground.points,
+            "inliers": ground.inliers,
+            "residual_rms_m": round(ground.residual_rms_m, 3),
+            "inlier_threshold_m": round(ground.threshold_m, 3),
+            "local_regions": ground.local_regions,
+        },
+        "mosaics": {n: dataclasses.asdict(i) for n, i in summary.mosaics.items()},
+        "union_coverage": round(summary.union_coverage, 4),
+        "images_per_s": round(summary.images_per_s, 2),
+    }
+
+
+def run(
+    cfg: Config,
+    run_dir: Path,
+    *,
+    source: str | None = None,
+    gsd_m: float | None = None,
+    log_paths: Sequence[Path] = (),
+    force: bool = False,
+    progress: bool = False,
+) -> MosaicSummary:
+    cfg = _with_overrides(cfg, source, gsd_m)
+    mc = cfg.mosaic
+    layout = RunLayout(run_dir)
+    rd = RunDir(run_dir)
+    frame_stamps, metas = feature_frame_index(run_dir)
+    vehicles = sorted(frame_stamps)
+    logs_used = list(log_paths) or layout.find_logs(metas)
+    fuse = layout.fuse(mc.fuse_dir)
+    traj_files = _fuse_inputs(fuse, vehicles, mc.source)
+    out = layout.mosaic(mosaic_name(mc.source))
+    outputs = [p for n in [*vehicles, MERGED_MOSAIC] for p in (out.image(n), out.world_file(n))]
+    inputs = [*logs_used, fuse.map_csv, *traj_files.values()]
+    plan = rd.plan(out.name, cfg, ("mosaic",), inputs, outputs, force)
+    if plan.action == "skip":
+        log.info("mosaic: %s is up to date (same config and inputs); --force to redo it", out.path)
+        return MosaicSummary(run_dir, out.path, True, mc.source)
+    t_start = time.perf_counter()
+
+    table = read_map_csv(fuse.map_csv)
+    logs = _open_logs(cfg, logs_used, vehicles)
+    tables = _poses(logs, vehicles, mc.source, traj_files)
+    cams = {v: logs.rig(v).left for v in vehicles}
+    ground = _ground(table, tables, cams, mc, fuse.map_csv)
+    frames, limits, gsds = _frames(frame_stamps, tables, cams, ground, mc)
+    grid, gsd = _canvas(frames, gsds, mc, run_dir)
+    scene = _Scene(ground, cams, limits, grid, _vehicle_rois(frames, grid, mc))
+    comps, merged = _compositors(scene.sub_rois, grid, mc)
+    fed, t_fed = _feed_images(logs, frames, scene, comps, merged, progress)
+
+    truth = _true_ground(run_dir, logs_used)
+    with atomic_dir(out.path) as tmp:
+        tracks = {v: tables[v].p_m for v in sorted(comps)}
+        results = _blended(comps, merged, scene)
+        infos = _write_mosaics(MosaicFolder(tmp), results, tracks, table, truth, gsd, mc.overlay)
+    union = _union_coverage(results, grid, scene.sub_rois) if merged is not None else 1.0
     wall = time.perf_counter() - t_start
     summary = MosaicSummary(
         run_dir=run_dir,
-        out_dir=out_dir,
+        out_dir=out.path,
         skipped=False,
         source=mc.source,
         gsd_m=gsd,
@@ -413,27 +535,7 @@ def run(
         images_per_s=fed / t_fed if t_fed > 0 else float("nan"),
         wall_s=wall,
     )
-    rd.record(
-        name,
-        plan,
-        outputs,
-        {
-            "source": mc.source,
-            "gsd_m": gsd,
-            "canvas_px": [grid.shape[1], grid.shape[0]],
-            "ground": {
-                "landmarks": ground.points,
-                "inliers": ground.inliers,
-                "residual_rms_m": round(ground.residual_rms_m, 3),
-                "inlier_threshold_m": round(ground.threshold_m, 3),
-                "local_regions": ground.local_regions,
-            },
-            "mosaics": {n: dataclasses.asdict(i) for n, i in infos.items()},
-            "union_coverage": round(union, 4),
-            "images_per_s": round(summary.images_per_s, 2),
-        },
-        wall,
-    )
+    rd.record(out.name, plan, outputs, _record_summary(summary, grid, ground), wall)
     return summary
 
 
@@ -450,7 +552,7 @@ def _union_coverage(
         h, w = b.mask.shape
         union[r0 : r0 + h, c0 : c0 + w] |= b.mask
     merged = np.zeros(grid.shape, bool)
-    b = results[ALL][0]
+    b = results[MERGED_MOSAIC][0]
     h, w = b.mask.shape
     merged[b.offset_rc[0] : b.offset_rc[0] + h, b.offset_rc[1] : b.offset_rc[1] + w] = b.mask
     n = int(union.sum())

@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import shutil
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -38,15 +37,17 @@ from cvslam_cli.features.format import FeatureSetBuilder, rig_calibration
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.projection import pixel_rays
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
+from cvslam_cli.io.atomic import atomic_dir, write_text_atomic
 from cvslam_cli.io.features_file import save_features
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
 from cvslam_cli.io.npz import NpzWriter, save_npz
+from cvslam_cli.io.run_layout import SimLayout
 from cvslam_cli.io.trajectory import PoseTable, write_tum
 from cvslam_cli.parallel import STATE, ordered_map
-from cvslam_cli.sim.imu import simulate_imu
+from cvslam_cli.sim.imu import ImuData, simulate_imu
 from cvslam_cli.sim.landmarks import LandmarkWorld, make_world, observe_frame
-from cvslam_cli.sim.odometry import simulate_odometry
+from cvslam_cli.sim.odometry import OdometryData, simulate_odometry
 from cvslam_cli.sim.render import RenderResult, photometric
 from cvslam_cli.sim.scenario import Scenario, SimVehicle, dump_scenario
 from cvslam_cli.sim.terrain import Terrain, make_terrain, render_terrain_view
@@ -202,17 +203,25 @@ def _render_pair(job: tuple[int, int, np.ndarray, np.ndarray]) -> tuple[np.ndarr
 # ----------------------------------------------------------------------------- vehicle
 
 
-def _write_vehicle(
-    out: Path,
-    sc: Scenario,
-    world: World,
-    v: _Vehicle,
-    landmarks: LandmarkWorld | None,
-    workers: int,
-    progress: bool,
-    render_state: dict[str, Any],
-) -> VehicleSummary:
-    spec, rig, names = v.spec, v.rig, v.names
+@dataclass(frozen=True, eq=False)
+class _Sensors:
+    """One vehicle's simulated data: camera stamps (F,) and left/right camera poses
+    (F, 4, 4), IMU (UAV) or odometry (UGV), the ground truth, and the interleaving order
+    of all their messages."""
+
+    t_cam: np.ndarray
+    cam_ns: np.ndarray
+    T_left: np.ndarray
+    T_right: np.ndarray
+    imu: ImuData | None
+    odo: OdometryData | None
+    gt_table: PoseTable
+    distance_m: float
+    streams: list[tuple[np.ndarray, int, str]]  # (stamps, order at equal stamps, kind)
+
+
+def _sensors(sc: Scenario, v: _Vehicle) -> _Sensors:
+    spec, rig = v.spec, v.rig
     t_end = sc.duration_s
     t_cam = sample_times(spec.start_s, t_end, spec.camera.rate_hz)
     cam_ns = stamp_ns(t_cam)
@@ -231,128 +240,188 @@ def _write_vehicle(
     gt = v.path.sample(t_gt)
     gt_table = PoseTable(stamp_ns(t_gt), gt.p_nav_m, matrix_to_quat_xyzw(gt.C_nav_body))
     streams.append((gt_table.stamps_ns, 2, "gt"))
+    dist = float(np.sum(np.linalg.norm(np.diff(gt.p_nav_m, axis=0), axis=1)))
+    return _Sensors(t_cam, cam_ns, T_left, T_right, imu, odo, gt_table, dist, streams)
 
+
+def _messages(streams: list[tuple[np.ndarray, int, str]]) -> Iterator[tuple[str, int, int]]:
+    """(kind, index in its stream, stamp_ns) of every message in stamp order (at equal
+    stamps: motion, then the frame, then the ground truth)."""
     stamps = np.concatenate([s for s, _, _ in streams])
     order_key = np.concatenate([np.full(len(s), o) for s, o, _ in streams])
     kinds = np.concatenate([np.full(len(s), i) for i, (s, _, _) in enumerate(streams)])
     index = np.concatenate([np.arange(len(s)) for s, _, _ in streams])
     order = np.lexsort((order_key, stamps))
     kind_names = [k for _, _, k in streams]
+    for j in order:
+        yield kind_names[kinds[j]], int(index[j]), int(stamps[j])
 
+
+def _write_log_header(lw: LogWriter, sc: Scenario, v: _Vehicle, first_ns: int) -> None:
+    """The log's metadata and the cameras' mounting (/tf_static)."""
+    names, rig = v.names, v.rig
+    lw.add_metadata(
+        "cvslam.sim",
+        {
+            "scenario": sc.name,
+            "seed": str(sc.seed),
+            "vehicle": names.vehicle,
+            "kind": v.spec.kind,
+            "mode": sc.mode,
+            "nav_frame": "NED",
+            "body_frame": "FRD",
+            "stamp_epoch_ns": str(SIM_EPOCH_NS),
+            "conversion": "simulated directly in the nav frame (NED); body frame FRD",
+        },
+    )
+    lw.write_tf_static(
+        TF_STATIC_TOPIC,
+        first_ns,
+        [
+            (names.body_frame, names.left_frame, rig.left.T_body_cam),
+            (names.body_frame, names.right_frame, rig.right.T_body_cam),
+        ],
+    )
+
+
+def _write_motion_or_truth(
+    lw: LogWriter, kind: str, i: int, st: int, v: _Vehicle, s: _Sensors
+) -> None:
+    """Message `i` of the IMU, odometry or ground-truth stream."""
+    spec, names, topics = v.spec, v.names, v.names.topics
+    if kind == "imu":
+        imu = s.imu
+        assert imu is not None
+        lw.write_imu(
+            topics.imu,
+            st,
+            imu.gyro_rad_s[i],
+            imu.accel_m_s2[i],
+            names.body_frame,
+            gyro_var=(spec.imu.gyro_noise_density**2) * spec.imu_rate_hz,
+            accel_var=(spec.imu.accel_noise_density**2) * spec.imu_rate_hz,
+        )
+    elif kind == "odom":
+        odo = s.odo
+        assert odo is not None
+        yaw = odo.yaw_rad[i]
+        lw.write_odometry(
+            topics.odom,
+            st,
+            f"{names.vehicle}/odom",
+            names.body_frame,
+            [odo.x_m[i], odo.y_m[i], 0.0],
+            [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)],
+            [odo.v_forward_m_s[i], 0.0, 0.0],
+            [0.0, 0.0, odo.yaw_rate_rad_s[i]],
+        )
+    else:
+        gt = s.gt_table
+        lw.write_pose(topics.ground_truth, st, gt.p_m[i], gt.q_xyzw[i], NAV_FRAME_ID)
+
+
+def _write_frame(
+    lw: LogWriter,
+    i: int,
+    st: int,
+    v: _Vehicle,
+    rendered: Iterator[tuple[np.ndarray, ...]] | None,
+    depth_writer: NpzWriter | None,
+    observe: Callable[[int, int], int],
+) -> int:
+    """Camera frame `i`: the camera infos, then the rendered images (and depth), or in
+    landmark mode the landmarks' observations (`observe`); the observations made."""
+    names, rig, topics = v.names, v.rig, v.names.topics
+    lw.write_camera_info(topics.left_info, st, rig.left)
+    lw.write_camera_info(topics.right_info, st, rig.right)
+    if rendered is None:
+        return observe(i, st)
+    left, right, depth = next(rendered)
+    lw.write_image(topics.left_image, st, left, names.left_frame)
+    lw.write_image(topics.right_image, st, right, names.right_frame)
+    if depth_writer is not None:
+        depth_writer.add(f"frame_{i:06d}", depth.astype(np.float16))
+    return 0
+
+
+def _write_truth(out: SimLayout, sc: Scenario, v: _Vehicle, s: _Sensors) -> None:
+    """The true trajectory and, for a UAV, the true IMU biases over time."""
+    vehicle = v.names.vehicle
+    write_tum(
+        out.true_trajectory(vehicle),
+        s.gt_table,
+        header=f"ground truth of {vehicle} (body in nav frame, NED), scenario "
+        f"{sc.name}, seed {sc.seed}",
+    )
+    if s.imu is not None:
+        save_npz(
+            out.true_imu_biases(vehicle),
+            {
+                "stamp_ns": stamp_ns(s.imu.t_s),
+                "gyro_bias_rad_s": s.imu.gyro_bias_rad_s,
+                "accel_bias_m_s2": s.imu.accel_bias_m_s2,
+            },
+        )
+
+
+def _write_vehicle(
+    out: SimLayout,
+    sc: Scenario,
+    v: _Vehicle,
+    landmarks: LandmarkWorld | None,
+    workers: int,
+    progress: bool,
+    render_state: dict[str, Any],
+) -> VehicleSummary:
+    """One vehicle's log (messages in stamp order), truth and, in landmark mode, features."""
+    s = _sensors(sc, v)
+    rig, vehicle = v.rig, v.names.vehicle
     images_mode = sc.mode == "images"
-    frames: Iterator[tuple[np.ndarray, ...]] = iter(())
+    rendered = None
     if images_mode:
-        jobs = [(v.index, k, T_left[k], T_right[k]) for k in range(len(t_cam))]
+        jobs = [(v.index, k, s.T_left[k], s.T_right[k]) for k in range(len(s.t_cam))]
         state = {**render_state, "rig": rig, "rays": (pixel_rays(rig.left), pixel_rays(rig.right))}
-        frames = ordered_map(_render_pair, jobs, workers=workers, state=state)
-    builder = FeatureSetBuilder(names.vehicle, rig_calibration(rig))
+        rendered = ordered_map(_render_pair, jobs, workers=workers, state=state)
+    builder = FeatureSetBuilder(vehicle, rig_calibration(rig))
     lm_rng = _rng(sc.seed, v.index, _LANDMARKS)
+
+    def observe(i: int, st: int) -> int:
+        assert landmarks is not None
+        left_kp, right_kp, matches = observe_frame(
+            landmarks, rig, s.T_left[i], sc.landmarks, lm_rng
+        )
+        builder.add_frame(st, left_kp, right_kp, matches)
+        return len(matches["landmark_id"])
+
     n_obs = 0
-    topics = names.topics
     with contextlib.ExitStack() as stack:
         depth_writer = (
-            stack.enter_context(NpzWriter(out / "truth" / f"{names.vehicle}_depth.npz"))
+            stack.enter_context(NpzWriter(out.true_depth(vehicle)))
             if images_mode and sc.outputs.depth
             else None
         )
         bar = stack.enter_context(
             tqdm(
-                total=len(t_cam),
-                desc=f"simulate {names.vehicle}",
+                total=len(s.t_cam),
+                desc=f"simulate {vehicle}",
                 unit="frame",
                 disable=None if progress else True,
                 leave=False,
             )
         )
-        with LogWriter(out / f"{names.vehicle}.mcap") as lw:
-            lw.add_metadata(
-                "cvslam.sim",
-                {
-                    "scenario": sc.name,
-                    "seed": str(sc.seed),
-                    "vehicle": names.vehicle,
-                    "kind": spec.kind,
-                    "mode": sc.mode,
-                    "nav_frame": "NED",
-                    "body_frame": "FRD",
-                    "stamp_epoch_ns": str(SIM_EPOCH_NS),
-                    "conversion": "simulated directly in the nav frame (NED); body frame FRD",
-                },
-            )
-            lw.write_tf_static(
-                TF_STATIC_TOPIC,
-                int(cam_ns[0]),
-                [
-                    (names.body_frame, names.left_frame, rig.left.T_body_cam),
-                    (names.body_frame, names.right_frame, rig.right.T_body_cam),
-                ],
-            )
-            for j in order:
-                kind, i, st = kind_names[kinds[j]], int(index[j]), int(stamps[j])
-                if kind == "imu":
-                    assert imu is not None
-                    lw.write_imu(
-                        topics.imu,
-                        st,
-                        imu.gyro_rad_s[i],
-                        imu.accel_m_s2[i],
-                        names.body_frame,
-                        gyro_var=(spec.imu.gyro_noise_density**2) * spec.imu_rate_hz,
-                        accel_var=(spec.imu.accel_noise_density**2) * spec.imu_rate_hz,
-                    )
-                elif kind == "odom":
-                    assert odo is not None
-                    yaw = odo.yaw_rad[i]
-                    lw.write_odometry(
-                        topics.odom,
-                        st,
-                        f"{names.vehicle}/odom",
-                        names.body_frame,
-                        [odo.x_m[i], odo.y_m[i], 0.0],
-                        [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)],
-                        [odo.v_forward_m_s[i], 0.0, 0.0],
-                        [0.0, 0.0, odo.yaw_rate_rad_s[i]],
-                    )
-                elif kind == "gt":
-                    lw.write_pose(
-                        topics.ground_truth, st, gt_table.p_m[i], gt_table.q_xyzw[i], NAV_FRAME_ID
-                    )
-                else:
-                    lw.write_camera_info(topics.left_info, st, rig.left)
-                    lw.write_camera_info(topics.right_info, st, rig.right)
-                    if images_mode:
-                        left, right, depth = next(frames)
-                        lw.write_image(topics.left_image, st, left, names.left_frame)
-                        lw.write_image(topics.right_image, st, right, names.right_frame)
-                        if depth_writer is not None:
-                            depth_writer.add(f"frame_{i:06d}", depth.astype(np.float16))
-                    else:
-                        assert landmarks is not None
-                        left_kp, right_kp, matches = observe_frame(
-                            landmarks, rig, T_left[i], sc.landmarks, lm_rng
-                        )
-                        builder.add_frame(st, left_kp, right_kp, matches)
-                        n_obs += len(matches["landmark_id"])
+        with LogWriter(out.log(vehicle)) as lw:
+            _write_log_header(lw, sc, v, int(s.cam_ns[0]))
+            for kind, i, st in _messages(s.streams):
+                if kind == "frame":
+                    n_obs += _write_frame(lw, i, st, v, rendered, depth_writer, observe)
                     bar.update(1)
-    write_tum(
-        out / "truth" / f"{names.vehicle}.tum",
-        gt_table,
-        header=f"ground truth of {names.vehicle} (body in nav frame, NED), scenario "
-        f"{sc.name}, seed {sc.seed}",
-    )
-    if imu is not None:
-        save_npz(
-            out / "truth" / f"{names.vehicle}_imu.npz",
-            {
-                "stamp_ns": stamp_ns(imu.t_s),
-                "gyro_bias_rad_s": imu.gyro_bias_rad_s,
-                "accel_bias_m_s2": imu.accel_bias_m_s2,
-            },
-        )
+                else:
+                    _write_motion_or_truth(lw, kind, i, st, v, s)
+    _write_truth(out, sc, v, s)
     if not images_mode:
         save_features(
             builder.build(),
-            out / "features" / f"{names.vehicle}.npz",
+            out.feature_file(vehicle),
             {
                 "producer": "cvslam simulate (landmark mode)",
                 "scenario": sc.name,
@@ -360,13 +429,12 @@ def _write_vehicle(
                 "landmarks": dump_scenario(sc)["landmarks"],
             },
         )
-    dist = float(np.sum(np.linalg.norm(np.diff(gt.p_nav_m, axis=0), axis=1)))
     return VehicleSummary(
-        len(t_cam),
-        0 if imu is None else len(imu.t_s),
-        0 if odo is None else len(odo.t_s),
-        len(gt_table),
-        dist,
+        len(s.t_cam),
+        0 if s.imu is None else len(s.imu.t_s),
+        0 if s.odo is None else len(s.odo.t_s),
+        len(s.gt_table),
+        s.distance_m,
         n_obs,
     )
 
@@ -403,10 +471,10 @@ def _landmark_world(sc: Scenario, world: World) -> LandmarkWorld:
     return make_world(np.vstack(pts), rng, (np.asarray(segs, float), np.asarray(heights, float)))
 
 
-def _write_world(out: Path, sc: Scenario, world: World) -> None:
+def _write_world(out: SimLayout, world: World) -> None:
     if isinstance(world, Terrain):
         save_npz(
-            out / "truth" / "world.npz",
+            out.world,
             {
                 "kind": np.array("terrain"),
                 "elevation_m": world.elevation_m,
@@ -420,7 +488,7 @@ def _write_world(out: Path, sc: Scenario, world: World) -> None:
         )
     else:
         save_npz(
-            out / "truth" / "world.npz",
+            out.world,
             {
                 "kind": np.array("yard"),
                 "ground_texture": world.ground_texture,
@@ -436,6 +504,26 @@ def _write_world(out: Path, sc: Scenario, world: World) -> None:
 # ----------------------------------------------------------------------------- run
 
 
+def _vehicles(sc: Scenario, world: World, source: str) -> list[_Vehicle]:
+    """The scenario's vehicles in name order, each checked against the world."""
+    vehicles = []
+    for i, (name, spec) in enumerate(sorted(sc.vehicles.items())):
+        names = vehicle_names(name, ConfigError)
+        rig = build_rig(name, spec.camera)
+        v = _Vehicle(i, names, spec, rig, build_path(name, spec, sc.duration_s, source))
+        check_vehicle(world, v, sc.duration_s, source)
+        vehicles.append(v)
+    return vehicles
+
+
+def _landmarks_csv(landmarks: LandmarkWorld) -> str:
+    ids = np.arange(len(landmarks.p_nav_m))
+    lines = ["id,x_m,y_m,z_m"] + [
+        f"{i},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}" for i, p in zip(ids, landmarks.p_nav_m, strict=True)
+    ]
+    return "\n".join(lines) + "\n"
+
+
 def run(
     sc: Scenario,
     out_dir: Path,
@@ -449,39 +537,18 @@ def run(
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
         raise CvslamError(f"{out_dir}: already exists and is not empty (use --force to replace it)")
     world = build_world(sc)
-    vehicles = []
-    for i, (name, spec) in enumerate(sorted(sc.vehicles.items())):
-        names = vehicle_names(name, ConfigError)
-        rig = build_rig(name, spec.camera)
-        v = _Vehicle(i, names, spec, rig, build_path(name, spec, sc.duration_s, source))
-        check_vehicle(world, v, sc.duration_s, source)
-        vehicles.append(v)
+    vehicles = _vehicles(sc, world, source)
     landmarks = _landmark_world(sc, world) if sc.mode == "landmarks" else None
-
-    tmp = out_dir.with_name(out_dir.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "truth").mkdir(parents=True)
     render_state = {"world": world, "scenario": sc}
-    try:
+    with atomic_dir(out_dir) as tmp:
+        out = SimLayout(tmp)
+        out.truth_dir.mkdir()
         summaries = {
-            v.names.vehicle: _write_vehicle(
-                tmp, sc, world, v, landmarks, workers, progress, render_state
-            )
+            v.names.vehicle: _write_vehicle(out, sc, v, landmarks, workers, progress, render_state)
             for v in vehicles
         }
-        _write_world(tmp, sc, world)
+        _write_world(out, world)
         if landmarks is not None:
-            ids = np.arange(len(landmarks.p_nav_m))
-            lines = ["id,x_m,y_m,z_m"] + [
-                f"{i},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}"
-                for i, p in zip(ids, landmarks.p_nav_m, strict=True)
-            ]
-            (tmp / "truth" / "landmarks.csv").write_text("\n".join(lines) + "\n")
-        (tmp / "scenario.yaml").write_text(yaml.safe_dump(dump_scenario(sc), sort_keys=False))
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if out_dir.exists():
-        shutil.rmtree(out_dir) if out_dir.is_dir() else out_dir.unlink()
-    tmp.rename(out_dir)
+            write_text_atomic(out.true_landmarks, _landmarks_csv(landmarks))
+        write_text_atomic(out.scenario, yaml.safe_dump(dump_scenario(sc), sort_keys=False))
     return SimSummary(out_dir, summaries, time.perf_counter() - t_start)

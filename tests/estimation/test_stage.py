@@ -20,6 +20,7 @@ from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum
 from tests.sim.test_stage import small_uav_scenario
 
@@ -188,6 +189,25 @@ def test_a_diverging_filter_is_reported_with_its_time(sim_run, tmp_path, cvslam)
     assert "diverged" in r.err and "s into the run" in r.err and "NIS" in r.err
     assert len(r.err.strip().splitlines()) == 1
     assert not (run / "fuse").exists() and not (run / "fuse.partial").exists()
+
+
+def test_an_interrupted_fuse_leaves_no_complete_looking_output(sim_run, tmp_path, monkeypatch):
+    run = _copy(sim_run, tmp_path)
+    old = run / "fuse"
+    old.mkdir()
+    (old / "uav1.tum").write_text("previous run\n")
+
+    def interrupted(path: Path, *args: object, **kwargs: object) -> None:
+        path.write_bytes(b"half a log")  # the last file of the folder, cut short
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stage, "write_result_mcap", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        stage.run(load_config((), list(NOISE[1::2])), run)
+    assert sorted(p.name for p in old.iterdir()) == ["uav1.tum"]  # the old folder, untouched
+    assert (old / "uav1.tum").read_text() == "previous run\n"
+    assert not list(run.glob("*.partial"))
+    assert "fuse" not in RunDir(run).load().get("stages", {})  # not recorded as done
 
 
 def test_bad_inputs_give_one_line_errors(sim_run, tmp_path, cvslam):

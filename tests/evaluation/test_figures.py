@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pandas as pd
@@ -18,19 +16,15 @@ T0_NS = 1_700_000_000_000_000_000
 
 
 def pixels(fig: Figure) -> tuple[int, int]:
-    """(height, width) in pixels that `save_png` must write."""
+    """(height, width) in pixels that `png_bytes` must render."""
     w, h = fig.get_size_inches() * figs.DPI
     return round(h), round(w)
 
 
-def saved(fig: Figure, tmp_path: Path, name: str = "fig.png") -> np.ndarray:
-    """Save through save_png; check the size and that nothing else is left; the image."""
+def rendered(fig: Figure) -> np.ndarray:
+    """Render through png_bytes; check the size; the image."""
     expected = pixels(fig)
-    path = tmp_path / name
-    figs.save_png(fig, path)
-    assert path.stat().st_size > 0
-    assert not list(tmp_path.glob("*.partial"))
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = cv2.imdecode(np.frombuffer(figs.png_bytes(fig), np.uint8), cv2.IMREAD_UNCHANGED)
     assert img.shape[:2] == expected
     return img
 
@@ -118,7 +112,7 @@ def test_positions_at_interpolates_without_extrapolating() -> None:
 # --------------------------------------------------------------------------- Fig. 10
 
 
-def test_position_components_plots_inputs_and_band(tmp_path: Path) -> None:
+def test_position_components_plots_inputs_and_band() -> None:
     truth, est = truth_series(), estimate_series()
     dr = Series("uav1", "dead reckoning", truth.t_s, truth.p_m * 1.1)
     fig = figs.position_components(truth, est, dr)
@@ -144,7 +138,7 @@ def test_position_components_plots_inputs_and_band(tmp_path: Path) -> None:
     notes = [ax.get_title(loc="right") for ax in fig.axes]
     assert notes == ["truth inside ±3σ: 78%", "truth inside ±3σ: 100%", "truth inside ±3σ: 100%"]
     assert "height" in fig.axes[2].get_ylabel() and "north" in fig.axes[0].get_ylabel()
-    saved(fig, tmp_path)
+    rendered(fig)
 
 
 def test_position_components_without_dead_reckoning_or_sigma() -> None:
@@ -161,7 +155,7 @@ def test_position_components_without_dead_reckoning_or_sigma() -> None:
 # --------------------------------------------------------------------------- Fig. 11
 
 
-def test_top_view_paths_landmarks_and_aspect(tmp_path: Path) -> None:
+def test_top_view_paths_landmarks_and_aspect() -> None:
     truths = [truth_series("uav1"), truth_series("uav2")]
     tracks = [estimate_series("uav1"), estimate_series("uav2")]
     lm = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [7.0, 8.0]])
@@ -190,7 +184,7 @@ def test_top_view_paths_landmarks_and_aspect(tmp_path: Path) -> None:
     )
     assert ax.get_aspect() == 1.0
     assert ax.get_xlabel().startswith("east") and ax.get_ylabel().startswith("north")
-    saved(fig, tmp_path)
+    rendered(fig)
 
 
 def test_top_view_dead_reckoning_dotted_and_checks_lengths() -> None:
@@ -205,7 +199,7 @@ def test_top_view_dead_reckoning_dotted_and_checks_lengths() -> None:
 # --------------------------------------------------------------------------- Fig. 12
 
 
-def test_landmark_uncertainty_lines_nan_and_events(tmp_path: Path) -> None:
+def test_landmark_uncertainty_lines_nan_and_events() -> None:
     timeline = timeline_frame().iloc[::-1]  # stamp order restored per vehicle
     fig = figs.landmark_uncertainty(timeline, events_frame(), T0_NS)
     (ax,) = fig.axes
@@ -226,7 +220,7 @@ def test_landmark_uncertainty_lines_nan_and_events(tmp_path: Path) -> None:
     assert to_hex(span.get_facecolor()) == colours["uav2"]
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert "uav2 re-observes another vehicle's landmarks" in labels
-    saved(fig, tmp_path)
+    rendered(fig)
 
 
 def test_landmark_uncertainty_labels_each_kind_once_and_needs_columns() -> None:
@@ -244,7 +238,7 @@ def test_landmark_uncertainty_labels_each_kind_once_and_needs_columns() -> None:
 # --------------------------------------------------------------------------- Figs. 13, 17
 
 
-def test_error_over_time_errors_and_rmse_labels(tmp_path: Path) -> None:
+def test_error_over_time_errors_and_rmse_labels() -> None:
     truth = truth_series()
     est = estimate_series()
     single = Series("uav1", "single NH-inf", est.t_s, est.p_m + np.array([0.0, 0.3, 0.4]))
@@ -260,7 +254,7 @@ def test_error_over_time_errors_and_rmse_labels(tmp_path: Path) -> None:
         assert line.get_label() == f"{s.label}: RMSE {rmse:.3f} m"
         assert line_colour(line) == figs.run_colour(s.label)
     assert ax.get_yscale() == "linear" and ax.get_title() == "uav1: single vs cooperative"
-    saved(fig, tmp_path)
+    rendered(fig)
 
 
 def test_error_over_time_outside_truth_is_nan_and_log_for_dead_reckoning() -> None:
@@ -283,7 +277,7 @@ def test_error_over_time_outside_truth_is_nan_and_log_for_dead_reckoning() -> No
 # --------------------------------------------------------------------------- feature types
 
 
-def test_feature_counts_one_axis_per_vehicle(tmp_path: Path) -> None:
+def test_feature_counts_one_axis_per_vehicle() -> None:
     tl = timeline_frame()
     fig = figs.feature_counts(tl, T0_NS)
     assert len(fig.axes) == 2
@@ -299,13 +293,13 @@ def test_feature_counts_one_axis_per_vehicle(tmp_path: Path) -> None:
         for line, column in zip(ax.lines, ("type1", "type2", "type3"), strict=True):
             np.testing.assert_allclose(line.get_xdata(), (rows["stamp_ns"] - T0_NS) / 1e9)
             np.testing.assert_array_equal(line.get_ydata(), rows[column])
-    saved(fig, tmp_path)
+    rendered(fig)
 
 
 # --------------------------------------------------------------------------- NEES
 
 
-def test_nees_band_log_axis_and_share_in_band(tmp_path: Path) -> None:
+def test_nees_band_log_axis_and_share_in_band() -> None:
     t = np.arange(5.0)
     nees = {"uav1": np.array([1.0, 2.0, 50.0, np.nan, 3.0]), "uav2": np.array([0.1, 2, 2, 2, 2.0])}
     fig = figs.nees_over_time(t, nees, (0.5, 9.0), 3)
@@ -319,7 +313,7 @@ def test_nees_band_log_axis_and_share_in_band(tmp_path: Path) -> None:
     ]
     np.testing.assert_array_equal(ax.lines[0].get_ydata(), nees["uav1"])
     np.testing.assert_array_equal(ax.lines[2].get_ydata(), [3.0, 3.0])  # expected value dof
-    saved(fig, tmp_path)
+    rendered(fig)
     with pytest.raises(ValueError, match="shape"):
         figs.nees_over_time(t, {"uav1": np.ones(4)}, (0.5, 9.0), 3)
     with pytest.raises(ValueError, match="band"):
@@ -329,13 +323,13 @@ def test_nees_band_log_axis_and_share_in_band(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- Figs. 19-21
 
 
-def test_mosaics_convert_colours_and_keep_transparency(tmp_path: Path) -> None:
+def test_mosaics_convert_colours_and_keep_transparency() -> None:
     grey = np.full((40, 60), 128, np.uint8)
     bgr = np.zeros((40, 60, 3), np.uint8)
     bgr[..., 0] = 255  # blue in BGR
     bgra = np.zeros((60, 60, 4), np.uint8)
     bgra[:, 30:] = (0, 0, 255, 255)  # right half opaque red, left half no-data
-    fig = figs.mosaics({"uav1": grey, "uav2": bgr, "all": bgra})
+    fig = figs.mosaics({"uav1": grey, "uav2": bgr, "all": bgra}, merged="all")
     assert len(fig.axes) == 3
     assert [ax.get_title() for ax in fig.axes][2].startswith("all vehicles (merged)")
     arrays = [np.asarray(ax.images[0].get_array()) for ax in fig.axes]
@@ -347,7 +341,7 @@ def test_mosaics_convert_colours_and_keep_transparency(tmp_path: Path) -> None:
     box = fig.axes[2].images[0].get_window_extent()
     h = pixels(fig)[0]
     row = int(h - (box.y0 + box.y1) / 2)
-    img = saved(fig, tmp_path)
+    img = rendered(fig)
     left = img[row, int(box.x0 + 0.25 * box.width)]
     right = img[row, int(box.x0 + 0.75 * box.width)]
     np.testing.assert_array_equal(left[:3], [255, 255, 255])  # transparent: white figure
@@ -356,13 +350,13 @@ def test_mosaics_convert_colours_and_keep_transparency(tmp_path: Path) -> None:
 
 def test_mosaics_reject_other_images() -> None:
     with pytest.raises(ValueError, match="uint8"):
-        figs.mosaics({"uav1": np.zeros((4, 4), np.float32)})
+        figs.mosaics({"uav1": np.zeros((4, 4), np.float32)}, merged="all")
 
 
 # --------------------------------------------------------------------------- headline
 
 
-def test_headline_bars_groups_runs_per_vehicle(tmp_path: Path) -> None:
+def test_headline_bars_groups_runs_per_vehicle() -> None:
     table = pd.DataFrame(
         {
             "cooperative NH-inf": [1.19, 1.43],
@@ -382,7 +376,7 @@ def test_headline_bars_groups_runs_per_vehicle(tmp_path: Path) -> None:
     texts = sorted(t.get_text() for t in ax.texts if t.get_text())
     assert texts == sorted(["1.19", "1.43", "2.50", "84.00", "55.10"])  # no label for NaN
     assert [t.get_text() for t in ax.get_xticklabels()] == ["uav1", "uav2"]
-    saved(fig, tmp_path)
+    rendered(fig)
 
 
 # --------------------------------------------------------------------------- colours
@@ -427,29 +421,15 @@ def test_run_colours_fixed_for_known_labels() -> None:
 # --------------------------------------------------------------------------- saving
 
 
-def test_save_png_is_deterministic_atomic_and_closes(tmp_path: Path) -> None:
+def test_png_bytes_are_deterministic_and_close() -> None:
     def build() -> Figure:
         return figs.error_over_time(truth_series(), [estimate_series()], "x")
 
-    a, b = tmp_path / "a.png", tmp_path / "b.png"
     fig = build()
-    figs.save_png(fig, a)
+    a = figs.png_bytes(fig)
     assert not fig.axes  # closed (cleared)
-    figs.save_png(build(), b)
-    assert a.read_bytes() == b.read_bytes()
-    # a failing write leaves the previous file and no .partial
-    before = a.read_bytes()
-    broken = build()
-
-    def fail(path: Path, **kwargs: object) -> None:
-        Path(path).write_bytes(b"half")
-        raise OSError("disk full")
-
-    broken.savefig = fail  # type: ignore[method-assign]
-    with pytest.raises(OSError, match="disk full"):
-        figs.save_png(broken, a)
-    assert a.read_bytes() == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]
+    assert a == figs.png_bytes(build())
+    assert a.startswith(b"\x89PNG")
 
 
 def test_nees_with_stamps_per_vehicle() -> None:
