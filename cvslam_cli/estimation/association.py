@@ -22,9 +22,7 @@ from numpy.typing import NDArray
 
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
 
 
 @dataclass(frozen=True, eq=False)

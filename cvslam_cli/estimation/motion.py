@@ -22,9 +22,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
+
 G_NAV = np.array([0.0, 0.0, 9.80665])
 
 

@@ -27,7 +27,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.estimation.filters import (
     UpdateResult,
@@ -35,9 +34,7 @@ from cvslam_cli.estimation.filters import (
     hinf_update_inplace,
 )
 from cvslam_cli.estimation.motion_models import MotionModel
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
 
 
 @dataclass(frozen=True)

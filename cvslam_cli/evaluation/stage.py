@@ -41,7 +41,8 @@ from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
 from cvslam_cli.io.logs import LogSet, ground_truth_tables
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.rundir import RunDir, input_record, write_text_atomic
-from cvslam_cli.io.trajectory import PoseTable, read_kitti, read_tum
+from cvslam_cli.io.trajectory import read_kitti, read_tum
+from cvslam_cli.records.poses import PoseTable
 
 log = logging.getLogger("cvslam")
 

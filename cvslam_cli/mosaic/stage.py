@@ -36,11 +36,10 @@ from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.stage import find_logs
 from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.features_file import feature_frame_index
-from cvslam_cli.io.fuse_files import MapTable, read_map_csv
+from cvslam_cli.io.fuse_files import read_map_csv
 from cvslam_cli.io.logs import LogSet, ground_truth_tables
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
-from cvslam_cli.io.records import StereoFrame
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum
 from cvslam_cli.mosaic.blend import Blended, Compositor
@@ -53,6 +52,8 @@ from cvslam_cli.mosaic.project import (
     image_gsd_m,
     warp_to_canvas,
 )
+from cvslam_cli.records.landmarks import LandmarkMap
+from cvslam_cli.records.log import StereoFrame
 
 log = logging.getLogger("cvslam")
 
@@ -112,7 +113,7 @@ def _trajectory_files(fuse_dir: Path, vehicles: Sequence[str], source: str) -> d
     return out
 
 
-def _landmarks(table: MapTable, max_std_m: float) -> np.ndarray:
+def _landmarks(table: LandmarkMap, max_std_m: float) -> np.ndarray:
     ok = ~(table.max_std_m > max_std_m)  # NaN std (unknown) is kept
     return table.p_nav_m[ok]
 

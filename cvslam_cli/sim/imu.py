@@ -17,11 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from cvslam_cli.records.arrays import F64
 from cvslam_cli.sim.trajectory import MotionSample, Trajectory
-
-F64 = NDArray[np.float64]
 
 G_NAV_M_S2 = np.array([0.0, 0.0, 9.80665])  # NED: gravity points down (+z)
 

@@ -21,10 +21,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.interpolate import BSpline, make_interp_spline
 
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 G_M_S2 = 9.80665  # standard gravity, used for the bank / pitch angles of a UAV
 
