@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from cvslam_cli.cli import main
+from tests.scenarios import small_uav_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -52,8 +53,6 @@ def cvslam(capsys: pytest.CaptureFixture[str]):
 def small_image_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """8 s of two simulated UAVs with images (376 x 240), extracted and fused (cooperative
     NH-infinity), made once per session; tests copy it before changing anything."""
-    from tests.sim.test_stage import small_uav_scenario
-
     tmp = tmp_path_factory.mktemp("small_image_run")
     camera = {"width": 376, "height": 240, "fx": 225.0, "fy": 225.0, "cx": 187.5, "cy": 119.5}
     sc = small_uav_scenario(

@@ -1,4 +1,5 @@
-"""Small synthetic ROS 2 logs for tests, written with cvslam's own LogWriter."""
+"""Small synthetic inputs for tests: ROS 2 logs written with cvslam's own LogWriter, and
+feature sets of random values."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 from cvslam_cli.geometry.camera import CameraModel, translation_T
 from cvslam_cli.geometry.rotations import make_T
 from cvslam_cli.io.mcap_writer import LogWriter
+from cvslam_cli.records.features import FeatureSet, FeatureSetBuilder, RigCalibration
 
 R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
@@ -126,3 +128,59 @@ def write_stereo_log(
                 log.write_pose(f"/{vehicle}/ground_truth/pose", stamp, p, [0, 0, 0, 1], "nav")
                 out.gt.append((stamp, p))
     return out
+
+
+# -- feature sets --------------------------------------------------------------------------
+
+
+def feature_rig() -> RigCalibration:
+    K = np.array([[450.0, 0, 376], [0, 450, 240], [0, 0, 1]])
+    T = np.stack([np.eye(4), np.eye(4)])
+    T[1, 0, 3] = 0.5
+    return RigCalibration(
+        K=np.stack([K, K]),
+        D=np.zeros((2, 5)),
+        distortion_model="plumb_bob",
+        T_body_cam=T,
+        size_px=np.array([[752, 480], [752, 480]]),
+    )
+
+
+def _feature_side(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
+    return {
+        "uv_raw_px": rng.uniform(0, 700, (n, 2)),
+        "uv_px": rng.uniform(0, 700, (n, 2)),
+        "size_px": rng.uniform(1, 9, n),
+        "angle_deg": rng.uniform(0, 360, n),
+        "response": rng.uniform(0, 1, n),
+        "octave": rng.integers(0, 4, n),
+        "desc": rng.integers(0, 256, (n, 128)),
+    }
+
+
+def _feature_matches(rng: np.random.Generator, m: int, nl: int, nr: int) -> dict[str, np.ndarray]:
+    return {
+        "left": rng.integers(0, nl, m),
+        "right": rng.integers(0, nr, m),
+        "disparity_px": rng.uniform(0, 30, m),
+        "distance": rng.uniform(0, 300, m),
+        "ratio": rng.uniform(0, 0.8, m),
+        "p_cam_m": rng.normal(size=(m, 3)),
+        "cov_cam_m2": np.tile(np.eye(3), (m, 1, 1)),
+        "landmark_id": rng.integers(-2, 50, m),
+    }
+
+
+def feature_set(seed: int = 0) -> FeatureSet:
+    """Three frames of uav1 (5/6/3, 0/0/0 and 7/4/4 left/right keypoints and matches) with
+    random values of the right shapes and dtypes."""
+    rng = np.random.default_rng(seed)
+    b = FeatureSetBuilder("uav1", feature_rig())
+    for i, (nl, nr, m) in enumerate([(5, 6, 3), (0, 0, 0), (7, 4, 4)]):
+        b.add_frame(
+            1000 + i,
+            _feature_side(rng, nl),
+            _feature_side(rng, nr),
+            _feature_matches(rng, m, max(nl, 1), max(nr, 1)),
+        )
+    return b.build()

@@ -13,6 +13,7 @@ import pytest
 from cvslam_cli import __version__
 from cvslam_cli.cli import cli
 from cvslam_cli.io.mcap_writer import LogWriter, header
+from tests.scenarios import small_uav_scenario
 from tests.synth import camera, write_stereo_log
 
 
@@ -253,8 +254,6 @@ def test_import_bad_folder_is_one_line(cvslam, tmp_path):
 
 
 def test_simulate_command(cvslam, tmp_path):
-    from tests.sim.test_stage import small_uav_scenario
-
     scenario = small_uav_scenario(tmp_path)
     out = tmp_path / "sim"
     res = cvslam(

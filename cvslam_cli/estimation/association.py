@@ -43,9 +43,7 @@ from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
 
 TYPE_1, TYPE_2, TYPE_3 = 1, 2, 3
 

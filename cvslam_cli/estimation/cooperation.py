@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.estimation.association import (
     TYPE_2,
@@ -37,8 +36,7 @@ from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.vehicle import VehiclePose, VehicleRun
-
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import I64
 
 
 class Cooperation:

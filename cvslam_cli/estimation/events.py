@@ -21,9 +21,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import I64
 
 # a frame with at least this many landmarks predicted in view and none matched counts as an
 # update with infinite NIS for divergence detection (the filter has lost its map)

@@ -9,10 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from cvslam_cli.features.format import FeatureSet
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.features import FeatureSet
 
 
 @dataclass(frozen=True, eq=False)

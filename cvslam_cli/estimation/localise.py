@@ -29,9 +29,7 @@ from numpy.typing import NDArray
 from cvslam_cli.estimation.association import descriptor_distances
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.geometry.rotations import matrix_to_euler_zyx
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
 
 RANSAC_ITERATIONS = 300
 RANSAC_CONFIDENCE = 0.999

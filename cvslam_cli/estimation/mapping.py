@@ -30,10 +30,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from cvslam_cli.features.format import DESCRIPTOR_SIZE
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.features import DESCRIPTOR_SIZE
 
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
 NEVER = np.iinfo(np.int64).min
 
 

@@ -32,9 +32,7 @@ from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import Candidates, VehiclePose, VehicleRun
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import I64
 
 
 class NewLandmarks:

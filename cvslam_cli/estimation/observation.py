@@ -23,12 +23,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.geometry.rotations import euler_zyx_derivatives, euler_zyx_to_matrix
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 @dataclass(frozen=True, eq=False)

@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.estimation.association import (
     TYPE_1,
@@ -62,9 +61,8 @@ from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.landmarks import LandmarkMap
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,29 +79,11 @@ class VehicleTrack:
 
 
 @dataclass(frozen=True, eq=False)
-class SlamMap:
-    """All landmarks ever mapped (N): ids (N,), p_nav_m (N, 3), std_m (N, 3), observers
-    (vehicle names joined by ';'), n_observations, first_seen_ns, last_seen_ns (N,),
-    in_state (N,) bool, true_id (N,) (simulator's id of the stereo match that created it,
-    -1 unknown, -2 an injected outlier)."""
-
-    ids: I64
-    p_nav_m: F64
-    std_m: F64
-    observers: tuple[str, ...]
-    n_observations: I64
-    first_seen_ns: I64
-    last_seen_ns: I64
-    in_state: NDArray[np.bool_]
-    true_id: I64
-
-
-@dataclass(frozen=True, eq=False)
 class SlamResult:
     tracks: dict[str, VehicleTrack]
     timeline: list[dict[str, Any]]
     events: list[dict[str, Any]]
-    landmarks: SlamMap
+    landmarks: LandmarkMap
     divergence: Divergence | None
     gamma_raised: int
 
@@ -368,8 +348,8 @@ class Slam:
         in_state = np.zeros(n, dtype=bool)
         in_state[book.slot_ids] = True
         last_seen = book.last_seen_ns[:n].max(axis=1) if n else np.zeros(0, dtype=np.int64)
-        lm = SlamMap(
-            ids=np.arange(n),
+        lm = LandmarkMap(
+            landmark_id=np.arange(n),
             p_nav_m=book.p_nav_m[:n].copy(),
             std_m=book.std_m[:n].copy(),
             observers=book.observer_names(self.names),
@@ -434,9 +414,9 @@ def merge_results(results: list[SlamResult]) -> SlamResult:
     """One result from vehicles run each in its own filter (`--single`): tracks side by side,
     timeline and events in time order, the maps concatenated with ids renumbered."""
     maps = [r.landmarks for r in results]
-    offsets = np.cumsum([0] + [len(m.ids) for m in maps])
-    lm = SlamMap(
-        ids=np.arange(int(offsets[-1])),
+    offsets = np.cumsum([0] + [len(m) for m in maps])
+    lm = LandmarkMap(
+        landmark_id=np.arange(int(offsets[-1])),
         p_nav_m=np.concatenate([m.p_nav_m for m in maps]).reshape(-1, 3),
         std_m=np.concatenate([m.std_m for m in maps]).reshape(-1, 3),
         observers=tuple(o for m in maps for o in m.observers),

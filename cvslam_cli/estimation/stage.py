@@ -49,7 +49,6 @@ from cvslam_cli.estimation.slam import (
     merge_results,
 )
 from cvslam_cli.estimation.vehicle import VehicleInput
-from cvslam_cli.features.format import FeatureSet, stereo_rig
 from cvslam_cli.geometry.rotations import (
     euler_zyx_to_matrix,
     matrix_to_euler_zyx,
@@ -60,7 +59,6 @@ from cvslam_cli.geometry.rotations import (
 from cvslam_cli.io.atomic import atomic_dir
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import (
-    MapTable,
     save_pose_covariances,
     write_csv_atomic,
     write_map_csv,
@@ -69,10 +67,12 @@ from cvslam_cli.io.fuse_files import (
 )
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import ImuSample, OdometryRecord, PoseRecord
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
-from cvslam_cli.io.trajectory import PoseTable, write_tum
+from cvslam_cli.io.trajectory import write_tum
+from cvslam_cli.records.features import FeatureSet, stereo_rig
+from cvslam_cli.records.log import ImuSample, OdometryRecord, PoseRecord
+from cvslam_cli.records.poses import PoseTable
 
 log = logging.getLogger("cvslam.fuse")
 
@@ -377,20 +377,6 @@ def _errors(track: VehicleTrack, gt: PoseTable) -> tuple[float, float]:
     return float(err[ok][-1]), float(np.sqrt(np.mean(err[ok] ** 2)))
 
 
-def _map_table(res: SlamResult) -> MapTable:
-    lm = res.landmarks
-    return MapTable(
-        landmark_id=lm.ids,
-        p_nav_m=lm.p_nav_m,
-        std_m=lm.std_m,
-        observers=lm.observers,
-        n_observations=lm.n_observations,
-        first_seen_ns=lm.first_seen_ns,
-        last_seen_ns=lm.last_seen_ns,
-        in_state=lm.in_state,
-    )
-
-
 EVENT_COLUMNS = [
     "stamp_ns",
     "end_stamp_ns",
@@ -421,7 +407,7 @@ def _write_outputs(
             header=f"{header}\nvehicle {v}: dead reckoning (same motion input, no correction)",
         )
         save_pose_covariances(out.pose_covariances(v), t.stamps_ns, t.pose_cov)
-    table = _map_table(res)
+    table = res.landmarks
     write_map_csv(out.map_csv, table)
     write_map_ply(out.map_ply, table)
     write_csv_atomic(out.timeline, pd.DataFrame(res.timeline))
@@ -592,7 +578,7 @@ def run(
         kind,
         single,
         vehicles,
-        len(res.landmarks.ids),
+        len(res.landmarks),
         wall,
         span_s / wall if wall > 0 else float("inf"),
         res.gamma_raised,

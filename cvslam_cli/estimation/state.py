@@ -27,13 +27,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult, update_inplace
 from cvslam_cli.estimation.motion.models import MotionModel
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
 
 
 @dataclass(frozen=True)

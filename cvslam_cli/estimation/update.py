@@ -11,15 +11,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
 from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
 
 
 class VisualUpdater:

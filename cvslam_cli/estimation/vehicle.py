@@ -11,10 +11,8 @@ from numpy.typing import NDArray
 from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.state import JointState
-from cvslam_cli.features.format import FeatureSet
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.features import FeatureSet
 
 
 @dataclass(frozen=True, eq=False)

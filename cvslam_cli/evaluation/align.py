@@ -15,9 +15,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 @dataclass(frozen=True, eq=False)

@@ -41,9 +41,8 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 DPI = 120
 COMPONENTS_SIZE_IN = (8.0, 7.5)

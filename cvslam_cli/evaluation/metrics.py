@@ -50,15 +50,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from cvslam_cli.evaluation.align import IDENTITY, Alignment, umeyama
 from cvslam_cli.geometry.rotations import quat_xyzw_to_matrix
-from cvslam_cli.io.trajectory import PoseTable
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.poses import PoseTable
 
 AlignKind = Literal["none", "se3", "sim3"]
 DeltaUnit = Literal["m", "frames"]

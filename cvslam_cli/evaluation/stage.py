@@ -57,7 +57,8 @@ from cvslam_cli.io.run_layout import (
     RunLayout,
 )
 from cvslam_cli.io.rundir import RunDir, input_record
-from cvslam_cli.io.trajectory import PoseTable, read_kitti, read_tum
+from cvslam_cli.io.trajectory import read_kitti, read_tum
+from cvslam_cli.records.poses import PoseTable
 
 log = logging.getLogger("cvslam")
 

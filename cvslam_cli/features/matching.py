@@ -67,12 +67,8 @@ from cvslam_cli.config import StereoMatchConfig
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.projection import undistort_pixels
 from cvslam_cli.geometry.rotations import invert_T
+from cvslam_cli.records.arrays import F32, F64, I64, U8, U16
 
-F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
-U8 = NDArray[np.uint8]
-U16 = NDArray[np.uint16]
 BOOL = NDArray[np.bool_]
 
 AUTO_Z_MIN_BASELINES = 4.0

@@ -69,14 +69,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.config import AdaptiveSiftConfig, SiftConfig
-
-F32 = NDArray[np.float32]
-I32 = NDArray[np.int32]
-I64 = NDArray[np.int64]
-U8 = NDArray[np.uint8]
+from cvslam_cli.records.arrays import F32, I32, I64, U8
 
 DESCRIPTOR_SIZE = 128
 REFERENCE_LAYERS = 3

@@ -31,7 +31,6 @@ from tqdm import tqdm
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, ExtractConfig
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.features.format import FeatureSetBuilder, rig_calibration
 from cvslam_cli.features.matching import auto_z_min_m, match_stereo, undistort_keypoints
 from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
 from cvslam_cli.geometry.camera import StereoRig
@@ -44,10 +43,11 @@ from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.features_file import save_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import StereoFrame
 from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.parallel import STATE, ordered_map
+from cvslam_cli.records.features import FeatureSetBuilder, rig_calibration
+from cvslam_cli.records.log import StereoFrame
 
 log = logging.getLogger("cvslam")
 

@@ -11,12 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.errors import CalibrationError
 from cvslam_cli.geometry.rotations import invert_T, is_rotation, make_T
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "none")
 

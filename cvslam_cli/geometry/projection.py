@@ -13,8 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.geometry.camera import CameraModel
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 def _coeffs(cam: CameraModel, n: int) -> F64:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 def quat_xyzw_to_matrix(q_xyzw: F64) -> F64:

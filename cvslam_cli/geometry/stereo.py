@@ -10,12 +10,10 @@ triangulation with respect to the four pixel coordinates (eq. 19 inverted).
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.geometry.rotations import invert_T
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 def projection_matrices(rig: StereoRig) -> tuple[F64, F64]:

@@ -17,9 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.features.format import FORMAT_NAME, FORMAT_VERSION, FeatureSet, RigCalibration
 from cvslam_cli.io.npz import save_npz
 from cvslam_cli.io.run_layout import RunLayout
+from cvslam_cli.records.features import FORMAT_NAME, FORMAT_VERSION, FeatureSet, RigCalibration
 
 _RIG_FIELDS = ("K", "D", "T_body_cam", "size_px")
 

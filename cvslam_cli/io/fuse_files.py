@@ -16,23 +16,19 @@ from __future__ import annotations
 import csv
 import io
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, vehicle_names
 from cvslam_cli.io.npz import save_npz
-from cvslam_cli.io.trajectory import PoseTable
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
-BoolArray = NDArray[np.bool_]
+from cvslam_cli.records.arrays import F64, I32, I64, check_shape
+from cvslam_cli.records.landmarks import UNKNOWN_TRUE_ID, LandmarkMap
+from cvslam_cli.records.poses import PoseTable
 
 # -- CSV ------------------------------------------------------------------------------------
 
@@ -61,93 +57,11 @@ MAP_COLUMNS = (
     "last_seen_ns",
     "in_state",
 )
+TRUE_ID_COLUMN = "true_id"  # read when present; `write_map_csv` does not write it
 OBSERVER_SEPARATOR = ";"
 
 
-def _as_int(name: str, value: object, shape: tuple[int, ...]) -> I64:
-    arr = np.asarray(value)
-    if arr.dtype.kind not in "iu" and arr.size:
-        raise ValueError(f"MapTable.{name}: expected integers, got dtype {arr.dtype}")
-    arr = arr.astype(np.int64)
-    if arr.shape != shape:
-        raise ValueError(f"MapTable.{name}: expected shape {shape}, got {arr.shape}")
-    return arr
-
-
-def _as_float(name: str, value: object, shape: tuple[int, ...]) -> F64:
-    arr = np.asarray(value)
-    if arr.dtype.kind not in "iuf" and arr.size:
-        raise ValueError(f"MapTable.{name}: expected real numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64)
-    if arr.shape != shape:
-        raise ValueError(f"MapTable.{name}: expected shape {shape}, got {arr.shape}")
-    return arr
-
-
-@dataclass(frozen=True, eq=False)
-class MapTable:
-    """The landmark map at the end of `fuse`, N landmarks, nav frame (NED), metres.
-
-    - `landmark_id` (N,) int64, unique;
-    - `p_nav_m` (N, 3) float64 position;
-    - `std_m` (N, 3) float64 standard deviations (sqrt of the covariance diagonal);
-    - `observers` N strings: the vehicles that observed the landmark, joined with ';'
-      (e.g. "uav1;uav2");
-    - `n_observations` (N,) int64 observations used;
-    - `first_seen_ns`, `last_seen_ns` (N,) int64 stamps of the first and last observation;
-    - `in_state` (N,) bool: still in the filter state at the end (False: evicted earlier).
-
-    Arrays are converted to these dtypes; a wrong shape or kind is a ValueError.
-    """
-
-    landmark_id: I64
-    p_nav_m: F64
-    std_m: F64
-    observers: tuple[str, ...]
-    n_observations: I64
-    first_seen_ns: I64
-    last_seen_ns: I64
-    in_state: BoolArray
-
-    def __post_init__(self) -> None:
-        ids = np.asarray(self.landmark_id)
-        if ids.ndim != 1:
-            raise ValueError(f"MapTable.landmark_id: expected shape (N,), got {ids.shape}")
-        n = len(ids)
-        set_ = object.__setattr__
-        set_(self, "landmark_id", _as_int("landmark_id", ids, (n,)))
-        set_(self, "p_nav_m", _as_float("p_nav_m", self.p_nav_m, (n, 3)))
-        set_(self, "std_m", _as_float("std_m", self.std_m, (n, 3)))
-        for name in ("n_observations", "first_seen_ns", "last_seen_ns"):
-            set_(self, name, _as_int(name, getattr(self, name), (n,)))
-        in_state = np.asarray(self.in_state)
-        if in_state.dtype != np.bool_ and in_state.size:
-            raise ValueError(f"MapTable.in_state: expected booleans, got dtype {in_state.dtype}")
-        if in_state.shape != (n,):
-            raise ValueError(f"MapTable.in_state: expected shape ({n},), got {in_state.shape}")
-        set_(self, "in_state", in_state.astype(np.bool_))
-        observers = tuple(self.observers)
-        if len(observers) != n or not all(isinstance(o, str) for o in observers):
-            raise ValueError(
-                f"MapTable.observers: expected {n} strings (one per landmark), "
-                f"got {len(observers)} items"
-            )
-        set_(self, "observers", observers)
-        if len(np.unique(self.landmark_id)) != n:
-            ids_sorted = np.sort(self.landmark_id)
-            dup = int(ids_sorted[np.flatnonzero(np.diff(ids_sorted) == 0)[0]])
-            raise ValueError(f"MapTable.landmark_id: id {dup} appears more than once")
-
-    def __len__(self) -> int:
-        return len(self.landmark_id)
-
-    @property
-    def max_std_m(self) -> F64:
-        """(N,) the largest of the three standard deviations of each landmark."""
-        return self.std_m.max(axis=1) if len(self) else np.zeros(0)
-
-
-def map_frame(table: MapTable) -> pd.DataFrame:
+def map_frame(table: LandmarkMap) -> pd.DataFrame:
     """`table` as a DataFrame with the `map.csv` columns (`MAP_COLUMNS`)."""
     return pd.DataFrame(
         {
@@ -168,7 +82,7 @@ def map_frame(table: MapTable) -> pd.DataFrame:
     )
 
 
-def write_map_csv(path: Path, table: MapTable) -> None:
+def write_map_csv(path: Path, table: LandmarkMap) -> None:
     """Write `map.csv` (columns `MAP_COLUMNS`, one landmark per row, floats exact,
     `in_state` as True/False). `read_map_csv` gives back an equal table."""
     write_csv_atomic(path, map_frame(table))
@@ -177,9 +91,11 @@ def write_map_csv(path: Path, table: MapTable) -> None:
 _BOOL_TEXT = {"true": True, "1": True, "false": False, "0": False}
 
 
-def read_map_csv(path: Path) -> MapTable:
+def read_map_csv(path: Path) -> LandmarkMap:
     """Read `map.csv` as written by `write_map_csv` (extra columns are ignored; column order
-    is free). `CvslamError` naming the file, and the column and line, for anything unusable."""
+    is free). The simulator ids come from a `true_id` column when the file has one, else
+    they are unknown (-1). `CvslamError` naming the file, and the column and line, for
+    anything unusable."""
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -200,7 +116,7 @@ def read_map_csv(path: Path) -> MapTable:
     for no, r in body:
         if len(r) != len(head):
             raise CvslamError(f"{path}: line {no}: {len(r)} fields, the header has {len(head)}")
-    index = {c: head.index(c) for c in MAP_COLUMNS}
+    index = {c: head.index(c) for c in (*MAP_COLUMNS, TRUE_ID_COLUMN) if c in head}
 
     def column(name: str, parse: type[int] | type[float]) -> list[int] | list[float]:
         out = []
@@ -229,7 +145,7 @@ def read_map_csv(path: Path) -> MapTable:
         return np.array([column(n, float) for n in names], dtype=np.float64).T.reshape(-1, 3)
 
     try:
-        return MapTable(
+        return LandmarkMap(
             landmark_id=np.array(column("id", int), dtype=np.int64),
             p_nav_m=floats("x_m", "y_m", "z_m"),
             std_m=floats("std_x_m", "std_y_m", "std_z_m"),
@@ -238,6 +154,9 @@ def read_map_csv(path: Path) -> MapTable:
             first_seen_ns=np.array(column("first_seen_ns", int), dtype=np.int64),
             last_seen_ns=np.array(column("last_seen_ns", int), dtype=np.int64),
             in_state=np.array(in_state, dtype=bool),
+            true_id=np.array(column(TRUE_ID_COLUMN, int), dtype=np.int64)
+            if TRUE_ID_COLUMN in index
+            else np.full(len(body), UNKNOWN_TRUE_ID, dtype=np.int64),
         )
     except (ValueError, OverflowError) as exc:
         raise CvslamError(f"{path}: not a usable map ({exc})") from None
@@ -252,13 +171,13 @@ _PLY_TYPES = {"<f4": "float", "<i4": "int"}
 _INT32 = np.iinfo(np.int32)
 
 
-def _int32_column(name: str, values: I64) -> NDArray[np.int32]:
+def _int32_column(name: str, values: I64) -> I32:
     if values.size and (values.min() < _INT32.min or values.max() > _INT32.max):
         raise ValueError(f"{name}: values outside the int32 range of the PLY/point cloud field")
     return values.astype(np.int32)
 
 
-def map_vertices(table: MapTable) -> np.ndarray:
+def map_vertices(table: LandmarkMap) -> np.ndarray:
     """(N,) structured array `PLY_VERTEX_DTYPE`: x y z (float32, nav frame, m), id,
     std (float32, the largest of the three standard deviations, m), n_obs."""
     v = np.empty(len(table), dtype=PLY_VERTEX_DTYPE)
@@ -269,7 +188,7 @@ def map_vertices(table: MapTable) -> np.ndarray:
     return v
 
 
-def write_map_ply(path: Path, table: MapTable) -> None:
+def write_map_ply(path: Path, table: LandmarkMap) -> None:
     """Write `map.ply`: binary little-endian PLY 1.0, one `vertex` element per landmark with
     float x y z, int id, float std (largest of the 3 std devs, m), int n_obs. Positions are
     float32 (mm-level at km range): `map.csv` has them in full precision."""
@@ -298,16 +217,9 @@ POSE_COV_COMPONENTS = ("x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")
 
 
 def _check_pose_cov(stamps_ns: np.ndarray, cov: np.ndarray) -> None:
-    if stamps_ns.ndim != 1 or stamps_ns.dtype.kind not in "iu":
-        raise ValueError(
-            f"pose covariances: stamps_ns: expected (F,) integers, "
-            f"got {stamps_ns.dtype} of shape {stamps_ns.shape}"
-        )
-    if cov.shape != (len(stamps_ns), 6, 6) or cov.dtype.kind not in "iuf":
-        raise ValueError(
-            f"pose covariances: cov: expected ({len(stamps_ns)}, 6, 6) numbers, "
-            f"got {cov.dtype} of shape {cov.shape}"
-        )
+    dims: dict[str, int] = {}
+    check_shape("pose covariances: stamps_ns", stamps_ns, ("F",), "iu", dims)
+    check_shape("pose covariances: cov", cov, ("F", 6, 6), "iuf", dims)
 
 
 def save_pose_covariances(path: Path, stamps_ns: I64, cov: F64) -> None:
@@ -382,7 +294,7 @@ def deadreckoning_path_topic(vehicle: str) -> str:
     return f"/{vehicle}/deadreckoning/path"
 
 
-def map_cloud(table: MapTable) -> np.ndarray:
+def map_cloud(table: LandmarkMap) -> np.ndarray:
     """(N,) structured array `CLOUD_DTYPE` for the PointCloud2 of the map."""
     v = map_vertices(table)
     cloud = np.empty(len(table), dtype=CLOUD_DTYPE)
@@ -394,7 +306,7 @@ def map_cloud(table: MapTable) -> np.ndarray:
 def write_result_mcap(
     path: Path,
     trajectories: Mapping[str, PoseTable],
-    landmarks: MapTable,
+    landmarks: LandmarkMap,
     *,
     deadreckoning: Mapping[str, PoseTable] | None = None,
     frame_id: str = NAV_FRAME_ID,

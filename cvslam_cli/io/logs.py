@@ -34,7 +34,7 @@ from cvslam_cli.geometry.camera import CameraModel, StereoRig, translation_T
 from cvslam_cli.geometry.rotations import invert_T, make_T, quat_xyzw_to_matrix
 from cvslam_cli.io.images import ImageDecodeError, decode_compressed, decode_raw
 from cvslam_cli.io.mcap_source import LogSource, RawMessage, TopicInfo
-from cvslam_cli.io.records import (
+from cvslam_cli.records.log import (
     ImageRecord,
     ImuSample,
     OdometryRecord,
@@ -42,7 +42,7 @@ from cvslam_cli.io.records import (
     Record,
     StereoFrame,
 )
-from cvslam_cli.io.trajectory import PoseTable
+from cvslam_cli.records.poses import PoseTable
 
 log = logging.getLogger("cvslam")
 

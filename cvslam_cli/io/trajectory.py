@@ -12,32 +12,16 @@ of the row-major 3x4 matrix [R | t] of `T_world_body`, no stamps and no comments
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from cvslam_cli.io.atomic import write_text_atomic
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
-
-
-@dataclass(frozen=True, eq=False)
-class PoseTable:
-    """Poses `T_frame_body`: `stamps_ns` (N,) increasing, `p_m` (N, 3), `q_xyzw` (N, 4)
-    rotating body coordinates into the table's frame."""
-
-    stamps_ns: I64
-    p_m: F64
-    q_xyzw: F64
-
-    def __len__(self) -> int:
-        return len(self.stamps_ns)
+from cvslam_cli.records.arrays import F64, I64, check_shape
+from cvslam_cli.records.poses import PoseTable
 
 
 def ns_to_seconds_text(stamp_ns: int) -> str:
@@ -195,13 +179,13 @@ def read_kitti(path: Path, stamps_ns: I64 | None = None) -> PoseTable:
     if stamps_ns is None:
         stamps = np.arange(len(T), dtype=np.int64) * 1_000_000_000
     else:
-        stamps = np.asarray(stamps_ns)
-        if stamps.shape != (len(T),) or stamps.dtype.kind not in "iu":
+        try:
+            given = check_shape("stamps_ns", stamps_ns, ("poses",), "iu", {"poses": len(T)})
+        except ValueError as exc:
             raise CvslamError(
-                f"{path}: {len(T)} poses, but the stamps given are "
-                f"{stamps.dtype} of shape {stamps.shape} (expected integer ns, one per pose)"
-            )
-        stamps = stamps.astype(np.int64)
+                f"{path}: {len(T)} poses, but the stamps given do not fit: {exc}"
+            ) from None
+        stamps = given.astype(np.int64)
         if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
             k = int(np.flatnonzero(np.diff(stamps) <= 0)[0]) + 1
             raise CvslamError(

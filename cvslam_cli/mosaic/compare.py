@@ -17,8 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.mosaic.project import CanvasGrid
-
-F32 = NDArray[np.float32]
+from cvslam_cli.records.arrays import F32
 
 
 def resample_reference(

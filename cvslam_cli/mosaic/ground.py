@@ -33,8 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.config import GroundConfig
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 class GroundFitError(ValueError):

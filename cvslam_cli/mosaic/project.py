@@ -28,8 +28,7 @@ from numpy.typing import NDArray
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.projection import project_points, undistort_pixels
 from cvslam_cli.mosaic.ground import GroundModel
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 @dataclass(frozen=True)

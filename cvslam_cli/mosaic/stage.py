@@ -36,11 +36,10 @@ from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.atomic import atomic_dir
 from cvslam_cli.io.features_file import feature_frame_index
-from cvslam_cli.io.fuse_files import MapTable, read_map_csv
+from cvslam_cli.io.fuse_files import read_map_csv
 from cvslam_cli.io.logs import LogSet, ground_truth_tables
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
-from cvslam_cli.io.records import StereoFrame
 from cvslam_cli.io.run_layout import (
     MERGED_MOSAIC,
     FuseFolder,
@@ -50,7 +49,7 @@ from cvslam_cli.io.run_layout import (
     mosaic_name,
 )
 from cvslam_cli.io.rundir import RunDir
-from cvslam_cli.io.trajectory import PoseTable, read_tum
+from cvslam_cli.io.trajectory import read_tum
 from cvslam_cli.mosaic.blend import Blended, Compositor
 from cvslam_cli.mosaic.compare import align_to_reference, resample_reference
 from cvslam_cli.mosaic.ground import GroundFitError, GroundModel, fit_ground
@@ -61,6 +60,9 @@ from cvslam_cli.mosaic.project import (
     image_gsd_m,
     warp_to_canvas,
 )
+from cvslam_cli.records.landmarks import LandmarkMap
+from cvslam_cli.records.log import StereoFrame
+from cvslam_cli.records.poses import PoseTable
 
 log = logging.getLogger("cvslam")
 
@@ -117,7 +119,7 @@ class _Scene:
 # --------------------------------------------------------------------------- inputs
 
 
-def _landmarks(table: MapTable, max_std_m: float) -> np.ndarray:
+def _landmarks(table: LandmarkMap, max_std_m: float) -> np.ndarray:
     ok = ~(table.max_std_m > max_std_m)  # NaN std (unknown) is kept
     return table.p_nav_m[ok]
 
@@ -231,7 +233,7 @@ def _poses(
 
 
 def _ground(
-    table: MapTable,
+    table: LandmarkMap,
     tables: dict[str, PoseTable],
     cams: dict[str, CameraModel],
     cfg: MosaicConfig,
@@ -424,7 +426,7 @@ def _write_mosaics(
     out: MosaicFolder,
     results: dict[str, tuple[Blended, CanvasGrid, int]],
     tracks: dict[str, np.ndarray],
-    table: MapTable,
+    table: LandmarkMap,
     truth: Any,
     gsd: float,
     overlay: bool,

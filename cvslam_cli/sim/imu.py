@@ -17,12 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.geometry.gravity import G_NAV_M_S2
+from cvslam_cli.records.arrays import F64
 from cvslam_cli.sim.trajectory import MotionSample, Trajectory
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

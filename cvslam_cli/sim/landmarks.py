@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cvslam_cli.features.format import DESCRIPTOR_SIZE
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.projection import distort_normalized, project_points
 from cvslam_cli.geometry.rotations import invert_T
@@ -28,9 +27,9 @@ from cvslam_cli.geometry.stereo import (
     triangulate,
     triangulation_covariance,
 )
+from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.features import DESCRIPTOR_SIZE
 from cvslam_cli.sim.scenario import LandmarkMode
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,13 +23,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from cvslam_cli.records.arrays import F64
 from cvslam_cli.sim.imu import check_times, white_noise_sigma
 from cvslam_cli.sim.strapdown import local_cubic_coefficients
 from cvslam_cli.sim.trajectory import Trajectory
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -34,11 +34,9 @@ below a millimetre (see tests/sim/test_trajectory_imu.py).
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 def local_cubic_coefficients(t_s: F64, y: F64) -> F64:

@@ -69,11 +69,9 @@ from numpy.typing import NDArray
 
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.projection import pixel_rays
+from cvslam_cli.records.arrays import F32, F64
 from cvslam_cli.sim.render import RenderResult
 from cvslam_cli.sim.texture import busy_texture, fractal_noise, smooth_texture, to_uint8
-
-F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
 
 MAX_TEXELS = 100_000_000
 """Largest orthophoto `make_terrain` builds (0.5 GB resident, several GB while building)."""

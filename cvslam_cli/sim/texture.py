@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-F32 = NDArray[np.float32]
+from cvslam_cli.records.arrays import F32
 
 
 def fractal_noise(

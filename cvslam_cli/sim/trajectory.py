@@ -21,13 +21,10 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.interpolate import BSpline, make_interp_spline
 
 from cvslam_cli.geometry.gravity import G_M_S2
-
-F64 = NDArray[np.float64]
-
+from cvslam_cli.records.arrays import F64
 
 # Below this fraction of the nominal speed the horizontal velocity is considered too small for
 # the heading (yaw) to be well defined.

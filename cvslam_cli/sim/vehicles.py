@@ -6,15 +6,13 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.errors import ConfigError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix, invert_T, make_T
+from cvslam_cli.records.arrays import F64
 from cvslam_cli.sim.scenario import SimVehicle, StereoRigSpec
 from cvslam_cli.sim.trajectory import MotionSample, Trajectory, waypoint_trajectory
-
-F64 = NDArray[np.float64]
 
 # camera optical axes (x right, y down, z forward) in the body frame (x fwd, y right, z down)
 R_BODY_CAM_DOWN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

@@ -45,12 +45,9 @@ from numpy.typing import NDArray
 from cvslam_cli.config import opt
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.projection import pixel_rays
+from cvslam_cli.records.arrays import F32, F64, U8
 from cvslam_cli.sim.render import RenderResult
 from cvslam_cli.sim.texture import busy_texture, fractal_noise, to_uint8
-
-F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
-U8 = NDArray[np.uint8]
 
 NEAR_M = 1e-3  # hits nearer than this to the optical centre are ignored
 MAX_TEXTURE_PX = 16000  # per texture dimension (cv2.remap addresses at most 32767)

@@ -52,8 +52,8 @@ from cvslam_cli.geometry.rotations import make_T
 from cvslam_cli.geometry.stereo import projection_matrices, triangulate, triangulation_covariance
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import StereoFrame
 from cvslam_cli.parallel import ordered_map
+from cvslam_cli.records.log import StereoFrame
 from cvslam_cli.sim.render import photometric
 from cvslam_cli.sim.scenario import SCENARIO_DIR, Scenario, load_scenario
 from cvslam_cli.sim.stage import build_world

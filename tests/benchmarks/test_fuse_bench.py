@@ -53,7 +53,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from numpy.typing import NDArray
 from threadpoolctl import threadpool_info, threadpool_limits
 
 from cvslam_cli.config import Config, load_config
@@ -73,14 +72,13 @@ from cvslam_cli.estimation.state import JointState
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.sim.scenario import SCENARIO_DIR, dump_scenario, load_scenario
 from cvslam_cli.sim.stage import run as simulate
 from cvslam_cli.sim.vehicles import build_rig
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
 
 SEED = 5
 L_VALUES = (50, 100, 200, 400, 700, 1000)

@@ -50,7 +50,6 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from numpy.typing import NDArray
 from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
@@ -61,12 +60,12 @@ from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.parallel import STATE, ordered_map
+from cvslam_cli.records.arrays import F64
 from cvslam_cli.sim.scenario import LandmarkMode, load_scenario
 from cvslam_cli.sim.stage import run as simulate
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
-F64 = NDArray[np.float64]
 
 ROOT = Path(__file__).resolve().parents[2]
 OUT_DIR = ROOT / "runs" / "benchmarks"

@@ -85,15 +85,15 @@ from cvslam_cli.estimation.vehicle import VehicleInput
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.trajectory import PoseTable
 from cvslam_cli.parallel import STATE, ordered_map
+from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.poses import PoseTable
 from cvslam_cli.sim.scenario import SCENARIO_DIR, load_scenario
 from cvslam_cli.sim.stage import SIM_EPOCH_NS
 from cvslam_cli.sim.stage import run as simulate
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
-F64 = NDArray[np.float64]
 
 ROOT = Path(__file__).resolve().parents[2]
 OUT_DIR = ROOT / "runs" / "benchmarks"
@@ -208,7 +208,7 @@ def _stats(results: list[SlamResult], crashed: list[str], wall_s: float, t0_ns: 
     by = tl.groupby("vehicle")
     return FilterStats(
         failed="; ".join(failed + crashed),
-        landmarks=sum(len(r.landmarks.ids) for r in results) if results else float("nan"),
+        landmarks=sum(len(r.landmarks) for r in results) if results else float("nan"),
         type1={str(k): float(v) for k, v in by["type1"].mean().items()},
         type2={str(k): int(v) for k, v in by["type2"].sum().items()},
         state_size=float(tl["state_size"].mean()) if rows else float("nan"),
@@ -605,7 +605,7 @@ def speed_run(spec: SpeedSpec) -> SpeedRow:
         wall,
         tl["ms"].to_numpy(float),
         float(tl["state_size"].mean()),
-        len(res.landmarks.ids),
+        len(res.landmarks),
         rmse,
         res.divergence is not None,
     )

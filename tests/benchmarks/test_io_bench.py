@@ -25,7 +25,7 @@ from cvslam_cli.config import load_config
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.mcap_writer import LogWriter
-from cvslam_cli.io.records import StereoFrame
+from cvslam_cli.records.log import StereoFrame
 from tests.synth import camera
 
 W, H = 752, 480

@@ -246,7 +246,7 @@ _DECODE = textwrap.dedent("""
     from cvslam_cli.config import load_config
     from cvslam_cli.io.logs import LogSet
     from cvslam_cli.io.mcap_source import McapLogSource
-    from cvslam_cli.io.records import StereoFrame
+    from cvslam_cli.records.log import StereoFrame
     logs = LogSet([McapLogSource(Path(p)) for p in sys.argv[1:]], load_config().logs)
     t = time.perf_counter()
     n = 0

@@ -14,8 +14,9 @@ from cvslam_cli.estimation.stage import truth_at
 from cvslam_cli.evaluation.align import umeyama
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import PoseRecord
-from cvslam_cli.io.trajectory import PoseTable, read_tum
+from cvslam_cli.io.trajectory import read_tum
+from cvslam_cli.records.log import PoseRecord
+from cvslam_cli.records.poses import PoseTable
 
 REPO = Path(__file__).resolve().parents[2]
 

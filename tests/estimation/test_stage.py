@@ -22,7 +22,7 @@ from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum
-from tests.sim.test_stage import small_uav_scenario
+from tests.scenarios import small_uav_scenario
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -167,7 +167,7 @@ def test_wrong_matches_never_become_landmarks_and_associations_are_right(sim_run
         res = Slam(inputs[:1], stage.slam_settings(cfg.fuse, "ekf")).run()
     assert res.divergence is None
     assert np.sum(res.landmarks.true_id == -2) == 0
-    assert np.sum(res.landmarks.true_id >= 0) == len(res.landmarks.ids)
+    assert np.sum(res.landmarks.true_id >= 0) == len(res.landmarks)
     tl = pd.DataFrame(res.timeline)
     upd = tl[tl.nis_dof > 0]
     assert 0.5 < (upd.nis / upd.nis_dof).mean() < 2.0

@@ -32,7 +32,8 @@ from cvslam_cli.evaluation.metrics import (
     rpe_per_distance,
 )
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from cvslam_cli.io.trajectory import PoseTable, read_kitti, read_tum, write_tum
+from cvslam_cli.io.trajectory import read_kitti, read_tum, write_tum
+from cvslam_cli.records.poses import PoseTable
 
 STATS = ("rmse", "mean", "median", "std", "min", "max", "sse")
 S = 1_000_000_000  # ns per second

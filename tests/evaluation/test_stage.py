@@ -106,7 +106,8 @@ def test_ground_truth_from_files(compared_run, tmp_path, cvslam):
     assert res.code == 1 and "missing.tum" in res.err
     # truth in another time base: nothing associates -> one line naming both
     shifted = read_tum(gt / "uav1.tum")
-    from cvslam_cli.io.trajectory import PoseTable, write_tum
+    from cvslam_cli.io.trajectory import write_tum
+    from cvslam_cli.records.poses import PoseTable
 
     write_tum(
         gt / "late.tum",

@@ -18,7 +18,7 @@ from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.sim.scenario import load_scenario
 from cvslam_cli.sim.stage import run as simulate
-from tests.sim.test_stage import small_uav_scenario
+from tests.scenarios import small_uav_scenario
 from tests.synth import camera, write_stereo_log
 
 CAMERA = {"width": 376, "height": 240, "fx": 225.0, "fy": 225.0, "cx": 187.5, "cy": 119.5}
@@ -169,10 +169,10 @@ def test_real_data_matches_are_epipolar_and_plausible(
     """Real logs through import + extract: matches lie on their epipolar lines and their
     depths fit the scene (EuRoC: a room; KITTI: a street). KITTI's rectification leaves
     ~0.6 px of vertical scatter even for plain SIFT, hence its lower fraction under 1 px."""
-    from cvslam_cli.features.format import stereo_rig
     from cvslam_cli.features.matching import epipolar_residual_px
     from cvslam_cli.io.importers.euroc import import_euroc
     from cvslam_cli.io.importers.kitti import import_kitti
+    from cvslam_cli.records.features import stereo_rig
 
     log = tmp_path / f"{dataset}.mcap"
     if dataset == "euroc":

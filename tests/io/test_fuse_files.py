@@ -10,7 +10,6 @@ from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.fuse_files import (
     MAP_COLUMNS,
     MAP_TOPIC,
-    MapTable,
     deadreckoning_path_topic,
     load_pose_covariances,
     path_topic,
@@ -23,14 +22,15 @@ from cvslam_cli.io.fuse_files import (
     write_result_mcap,
 )
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.trajectory import PoseTable
+from cvslam_cli.records.landmarks import LandmarkMap
+from cvslam_cli.records.poses import PoseTable
 
 
-def random_map(n: int = 40, seed: int = 0) -> MapTable:
+def random_map(n: int = 40, seed: int = 0) -> LandmarkMap:
     rng = np.random.default_rng(seed)
     first = rng.integers(0, 10**10, n)
     names = ("uav1", "uav2", "ugv1", "uav1;uav2", "uav1;uav2;ugv1")
-    return MapTable(
+    return LandmarkMap(
         landmark_id=rng.permutation(10 * n)[:n].astype(np.int64),
         p_nav_m=rng.normal(scale=10.0 ** rng.uniform(-3, 4, (n, 1)), size=(n, 3)),
         std_m=np.abs(rng.normal(scale=0.5, size=(n, 3))),
@@ -39,6 +39,7 @@ def random_map(n: int = 40, seed: int = 0) -> MapTable:
         first_seen_ns=first,
         last_seen_ns=first + rng.integers(0, 10**9, n),
         in_state=rng.random(n) < 0.5,
+        true_id=rng.integers(-2, 10 * n, n),
     )
 
 
@@ -50,7 +51,7 @@ def random_poses(n: int, seed: int, t0_ns: int = 1_000_000_000) -> PoseTable:
     return PoseTable(stamps, rng.normal(scale=20.0, size=(n, 3)), q)
 
 
-def assert_same_map(a: MapTable, b: MapTable) -> None:
+def assert_same_map(a: LandmarkMap, b: LandmarkMap) -> None:
     for name in (
         "landmark_id",
         "p_nav_m",
@@ -66,7 +67,7 @@ def assert_same_map(a: MapTable, b: MapTable) -> None:
     assert a.observers == b.observers
 
 
-# -- MapTable, map.csv ----------------------------------------------------------------------
+# -- map.csv --------------------------------------------------------------------------------
 
 
 def test_map_csv_round_trip_is_exact(tmp_path):
@@ -83,7 +84,7 @@ def test_map_csv_round_trip_is_exact(tmp_path):
 
 
 def test_empty_map_round_trips(tmp_path):
-    empty = MapTable(
+    empty = LandmarkMap(
         np.zeros(0, np.int64),
         np.zeros((0, 3)),
         np.zeros((0, 3)),
@@ -92,6 +93,7 @@ def test_empty_map_round_trips(tmp_path):
         np.zeros(0, np.int64),
         np.zeros(0, np.int64),
         np.zeros(0, bool),
+        np.zeros(0, np.int64),
     )
     write_map_csv(tmp_path / "map.csv", empty)
     back = read_map_csv(tmp_path / "map.csv")
@@ -105,29 +107,24 @@ def test_map_csv_nan_std_round_trips(tmp_path):
     table = random_map(5, seed=1)
     std = table.std_m.copy()
     std[2, 1] = np.nan
-    t2 = MapTable(**{**vars(table), "std_m": std})
+    t2 = LandmarkMap(**{**vars(table), "std_m": std})
     write_map_csv(tmp_path / "m.csv", t2)
     back = read_map_csv(tmp_path / "m.csv")
     assert np.isnan(back.std_m[2, 1]) and np.isnan(back.std_m).sum() == 1
 
 
-@pytest.mark.parametrize(
-    ("field", "value", "expected"),
-    [
-        ("p_nav_m", np.zeros((4, 2)), r"p_nav_m: expected shape \(5, 3\), got \(4, 2\)"),
-        ("std_m", np.zeros(5), r"std_m: expected shape \(5, 3\)"),
-        ("observers", ("uav1",) * 4, "observers: expected 5 strings"),
-        ("n_observations", np.zeros(5), "n_observations: expected integers"),
-        ("in_state", np.zeros(5, int), "in_state: expected booleans"),
-        ("last_seen_ns", np.zeros(6, np.int64), r"last_seen_ns: expected shape \(5,\)"),
-        ("landmark_id", np.array([1, 2, 3, 2, 5]), "id 2 appears more than once"),
-        ("landmark_id", np.zeros((5, 1), np.int64), r"landmark_id: expected shape \(N,\)"),
-    ],
-)
-def test_map_table_validates_shapes(field, value, expected):
-    kwargs = {**vars(random_map(5, seed=2)), field: value}
-    with pytest.raises(ValueError, match=expected):
-        MapTable(**kwargs)
+def test_map_csv_true_id_read_when_present_else_unknown(tmp_path):
+    table = random_map(6, seed=4)
+    path = tmp_path / "map.csv"
+    write_map_csv(path, table)
+    assert "true_id" not in path.read_text().splitlines()[0]
+    np.testing.assert_array_equal(read_map_csv(path).true_id, np.full(6, -1))
+    frame = pd.read_csv(path)
+    frame["true_id"] = table.true_id
+    frame.to_csv(path, index=False)
+    back = read_map_csv(path)
+    assert back.true_id.dtype == np.int64
+    np.testing.assert_array_equal(back.true_id, table.true_id)
 
 
 def _edit_csv(tmp_path, edit):
@@ -161,7 +158,7 @@ def _edit_csv(tmp_path, edit):
         (lambda ls: [], "empty file"),
         (
             lambda ls: [ls[0], ls[1], ls[1]],
-            "not a usable map (MapTable.landmark_id: id",
+            "not a usable map (LandmarkMap.landmark_id: id",
         ),
     ],
 )
@@ -219,7 +216,7 @@ def test_map_ply_parses_back(tmp_path):
 
 def test_map_ply_refuses_ids_beyond_int32(tmp_path):
     table = random_map(3, seed=6)
-    big = MapTable(**{**vars(table), "landmark_id": np.array([1, 2, 2**40])})
+    big = LandmarkMap(**{**vars(table), "landmark_id": np.array([1, 2, 2**40])})
     with pytest.raises(ValueError, match="int32"):
         write_map_ply(tmp_path / "map.ply", big)
     assert not list(tmp_path.iterdir())
@@ -258,7 +255,7 @@ def test_pose_covariances_round_trip_and_reproducible_bytes(tmp_path):
 
 def test_pose_covariances_refuse_other_versions_and_shapes(tmp_path):
     stamps, cov = _covs(3, seed=8)
-    with pytest.raises(ValueError, match=r"expected \(3, 6, 6\)"):
+    with pytest.raises(ValueError, match=r"cov: expected .* \(F, 6, 6\) = \(3, 6, 6\)"):
         save_pose_covariances(tmp_path / "x.npz", stamps, cov[:, :3, :3])
     path = tmp_path / "v2.npz"
     np.savez(path, format=np.array("cvslam.pose_covariance"), version=np.array(2))
@@ -340,7 +337,7 @@ def _cloud_array(msg) -> np.ndarray:
     return np.frombuffer(bytes(msg.data), dtype=dtype, count=msg.width * msg.height)
 
 
-def _check_cloud(msg, landmarks: MapTable) -> None:
+def _check_cloud(msg, landmarks: LandmarkMap) -> None:
     assert [f.name for f in msg.fields][:5] == ["x", "y", "z", "std", "id"]
     assert [f.datatype for f in msg.fields][:5] == [7, 7, 7, 7, 5]
     assert msg.is_dense and not msg.is_bigendian and msg.height == 1

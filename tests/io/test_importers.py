@@ -29,8 +29,8 @@ from cvslam_cli.io.importers.euroc import import_euroc
 from cvslam_cli.io.importers.kitti import import_kitti
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import ImuSample, PoseRecord, StereoFrame
 from cvslam_cli.io.trajectory import seconds_text_to_ns as seconds_to_ns
+from cvslam_cli.records.log import ImuSample, PoseRecord, StereoFrame
 
 # --------------------------------------------------------------------------- helpers
 

@@ -9,7 +9,7 @@ from cvslam_cli.config import load_config
 from cvslam_cli.errors import CalibrationError, LogError
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import ImuSample, PoseRecord, StereoFrame
+from cvslam_cli.records.log import ImuSample, PoseRecord, StereoFrame
 from tests.synth import write_stereo_log
 
 

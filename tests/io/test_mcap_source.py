@@ -14,7 +14,7 @@ from cvslam_cli.config import load_config
 from cvslam_cli.errors import LogError
 from cvslam_cli.io.logs import LogSet, stamp_ns_of
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import ImuSample, StereoFrame
+from cvslam_cli.records.log import ImuSample, StereoFrame
 from tests.synth import write_stereo_log
 
 TS = get_typestore(Stores.ROS2_HUMBLE)

@@ -8,13 +8,13 @@ import pytest
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.geometry.rotations import quat_xyzw_to_matrix
 from cvslam_cli.io.trajectory import (
-    PoseTable,
     read_kitti,
     read_tum,
     seconds_text_to_ns,
     write_kitti,
     write_tum,
 )
+from cvslam_cli.records.poses import PoseTable
 
 
 def random_table(n: int = 50, seed: int = 0, t0_ns: int = 1_403_715_273_262_142_976) -> PoseTable:

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from cvslam_cli.config import load_config
 from cvslam_cli.errors import ConfigError, CvslamError
@@ -15,63 +14,12 @@ from cvslam_cli.geometry.rotations import quat_xyzw_to_matrix
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import ImuSample, OdometryRecord, PoseRecord, StereoFrame
+from cvslam_cli.records.log import ImuSample, OdometryRecord, PoseRecord, StereoFrame
 from cvslam_cli.sim.scenario import SCENARIO_DIR, load_scenario
 from cvslam_cli.sim.stage import run
 from cvslam_cli.sim.strapdown import integrate_strapdown
 from cvslam_cli.sim.vehicles import build_path
-
-SMALL_CAMERA = {
-    "mount": "down",
-    "width": 188,
-    "height": 120,
-    "fx": 112.5,
-    "fy": 112.5,
-    "cx": 93.5,
-    "cy": 59.5,
-    "baseline_m": 1.5,
-    "rate_hz": 5.0,
-}
-
-
-def small_uav_scenario(tmp_path: Path, **changes) -> Path:
-    sc = {
-        "name": "small",
-        "duration_s": 6.0,
-        "seed": 3,
-        "world": "terrain",
-        "terrain": {
-            "size_m": [300.0, 300.0],
-            "origin_nav_m": [-150.0, -150.0],
-            "texture_px_per_m": 2.0,
-            "relief_m": 20.0,
-            "relief_scale_m": 80.0,
-            "region_scale_m": 100.0,
-        },
-        "vehicles": {
-            "uav1": {
-                "closed": True,
-                "speed_m_s": 10.0,
-                "camera": dict(SMALL_CAMERA),
-                "waypoints_nav_m": [[0, -30, -80], [30, 0, -80], [0, 30, -80], [-30, 0, -80]],
-            },
-            "uav2": {
-                "start_s": 1.0,
-                "speed_m_s": 10.0,
-                "camera": dict(SMALL_CAMERA),
-                "waypoints_nav_m": [[-60, -60, -85], [0, -10, -85], [60, 60, -85]],
-            },
-        },
-    }
-    for key, value in changes.items():
-        node = sc
-        *parents, last = key.split(".")
-        for p in parents:
-            node = node[p]
-        node[last] = value
-    path = tmp_path / "small.yaml"
-    path.write_text(yaml.safe_dump(sc))
-    return path
+from tests.scenarios import small_uav_scenario
 
 
 def _digest(folder: Path) -> dict[str, str]:

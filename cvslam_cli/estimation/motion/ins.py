@@ -22,11 +22,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.geometry.gravity import G_NAV_M_S2
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 def euler_rate_matrix(euler_rad: F64) -> tuple[F64, F64]:

@@ -26,19 +26,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.estimation.motion.ins import InsNoise, euler_rate_matrix, ins_step_terms
 from cvslam_cli.geometry.gravity import G_M_S2
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
-
-if TYPE_CHECKING:  # the core takes records but never imports io/ (DESIGN.md section 6)
-    from cvslam_cli.io.records import OdometryRecord
-
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.log import OdometryRecord
 
 
 @dataclass(frozen=True)

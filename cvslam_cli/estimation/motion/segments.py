@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.records.arrays import F64, I64
 
 
 def motion_segments(stamps_ns: I64, inputs: F64, t0_ns: int, t1_ns: int) -> tuple[F64, F64]:

@@ -26,7 +26,6 @@ from typing import Any
 import cv2
 import numpy as np
 import yaml
-from numpy.typing import NDArray
 from tqdm import tqdm
 
 from cvslam_cli.errors import CvslamError, DatasetError
@@ -34,10 +33,9 @@ from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
-from cvslam_cli.io.trajectory import PoseTable, finite_floats, seconds_text_to_ns
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
+from cvslam_cli.io.trajectory import finite_floats, seconds_text_to_ns
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.poses import PoseTable
 
 
 @dataclass(frozen=True)

@@ -29,12 +29,9 @@ from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import is_rotation, matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from cvslam_cli.io.importers.common import (
-    F64,
-    I64,
     ImportPlan,
     ImportSummary,
     ImuTable,
-    PoseTable,
     StereoFiles,
     check_rig,
     check_vehicle_name,
@@ -49,6 +46,8 @@ from cvslam_cli.io.importers.common import (
     rig_metadata,
     write_plan,
 )
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.poses import PoseTable
 
 #: Rotation from the EuRoC Vicon world frame (z up) to NED: world x -> east, y -> north,
 #: z -> up (= -down). A proper rotation (det +1).

@@ -30,8 +30,6 @@ from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig, translation_T
 from cvslam_cli.geometry.rotations import invert_T, is_rotation, make_T
 from cvslam_cli.io.importers.common import (
-    F64,
-    I64,
     ImportPlan,
     ImportSummary,
     StereoFiles,
@@ -46,6 +44,7 @@ from cvslam_cli.io.importers.common import (
     seconds_text_to_ns,
     write_plan,
 )
+from cvslam_cli.records.arrays import F64, I64
 
 #: Camera optical frame (x right, y down, z forward) -> body FRD (x forward, y right, z down).
 R_BODY_CAM: F64 = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])

@@ -25,7 +25,7 @@ from cvslam_cli.geometry.rotations import (
 )
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.records import OdometryRecord, PoseRecord
+from cvslam_cli.records.log import OdometryRecord, PoseRecord
 from cvslam_cli.sim.imu import true_imu
 from cvslam_cli.sim.odometry import simulate_odometry
 from cvslam_cli.sim.scenario import SCENARIO_DIR, load_scenario

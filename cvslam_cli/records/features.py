@@ -18,17 +18,28 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
+from cvslam_cli.records.arrays import F32, F64, I32, I64, U8, Dim, check_shape
 
 FORMAT_NAME = "cvslam.features"
 FORMAT_VERSION = 1
 DESCRIPTOR_SIZE = 128  # SIFT
 
-I64 = NDArray[np.int64]
-F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
+# every keypoint and match column of a `FeatureSet`, keyed without its `left_` / `right_` /
+# `match_` prefix: (shape of one row, dtype); a column not named here is a float32 scalar
+_COLUMNS: dict[str, tuple[tuple[int, ...], type[np.generic]]] = {
+    "uv_raw_px": ((2,), np.float32),
+    "uv_px": ((2,), np.float32),
+    "octave": ((), np.int32),
+    "desc": ((DESCRIPTOR_SIZE,), np.uint8),
+    "left": ((), np.int64),
+    "right": ((), np.int64),
+    "p_cam_m": ((3,), np.float64),
+    "cov_cam_m2": ((3, 3), np.float64),
+    "landmark_id": ((), np.int64),
+}
+_FLOAT32_SCALAR: tuple[tuple[int, ...], type[np.generic]] = ((), np.float32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,7 +54,7 @@ class RigCalibration:
     D: F64
     distortion_model: str
     T_body_cam: F64
-    size_px: NDArray[np.int64]
+    size_px: I64
 
 
 def rig_calibration(rig: StereoRig) -> RigCalibration:
@@ -111,15 +122,15 @@ class FeatureSet:
     left_size_px: F32
     left_angle_deg: F32
     left_response: F32
-    left_octave: NDArray[np.int32]
-    left_desc: NDArray[np.uint8]
+    left_octave: I32
+    left_desc: U8
     right_uv_raw_px: F32
     right_uv_px: F32
     right_size_px: F32
     right_angle_deg: F32
     right_response: F32
-    right_octave: NDArray[np.int32]
-    right_desc: NDArray[np.uint8]
+    right_octave: I32
+    right_desc: U8
     match_left: I64
     match_right: I64
     match_disparity_px: F32
@@ -137,29 +148,46 @@ class FeatureSet:
         return slice(int(self.match_offsets[i]), int(self.match_offsets[i + 1]))
 
     def validate(self) -> None:
-        """Raise ValueError if shapes or offsets are inconsistent (a corrupt file)."""
-        F = self.n_frames
+        """Raise ValueError if shapes, dtypes or offsets are inconsistent (a corrupt file)."""
+        for name, shape in (
+            ("K", (2, 3, 3)),
+            ("D", (2, 5)),
+            ("T_body_cam", (2, 4, 4)),
+            ("size_px", (2, 2)),
+        ):
+            check_shape(f"rig.{name}", getattr(self.rig, name), shape, "iuf")
+        dims = {"F": self.n_frames, "F+1": self.n_frames + 1}
+        check_shape("frame_stamp_ns", self.frame_stamp_ns, ("F",), "iu", dims)
         for name in ("left_offsets", "right_offsets", "match_offsets"):
-            off = getattr(self, name)
-            if off.shape != (F + 1,) or off[0] != 0 or np.any(np.diff(off) < 0):
-                raise ValueError(f"{name} must be ({F + 1},) non-decreasing from 0")
-        nl, nr, m = (
-            int(self.left_offsets[-1]),
-            int(self.right_offsets[-1]),
-            int(self.match_offsets[-1]),
-        )
-        for f in fields(self):
-            if f.name.startswith(("left_", "right_", "match_")) and not f.name.endswith("offsets"):
-                arr = getattr(self, f.name)
-                n = {"left": nl, "right": nr, "match": m}[f.name.split("_")[0]]
-                if arr.shape[0] != n:
-                    raise ValueError(f"{f.name} has {arr.shape[0]} rows, expected {n}")
-        if self.left_desc.shape[1:] != (DESCRIPTOR_SIZE,) or self.left_desc.dtype != np.uint8:
-            raise ValueError(f"left_desc must be (NL, {DESCRIPTOR_SIZE}) uint8")
-        if m and (self.match_left.max() >= nl or self.match_right.max() >= nr):
+            off = check_shape(name, getattr(self, name), ("F+1",), "iu", dims)
+            if off[0] != 0 or np.any(np.diff(off) < 0):
+                raise ValueError(f"{name} must be non-decreasing from 0")
+        dims |= {
+            "NL": int(self.left_offsets[-1]),
+            "NR": int(self.right_offsets[-1]),
+            "M": int(self.match_offsets[-1]),
+        }
+        rows = {"left": "NL", "right": "NR", "match": "M"}
+        for name, (prefix, key) in _column_fields().items():
+            row_shape, dtype = _COLUMNS.get(key, _FLOAT32_SCALAR)
+            shape: tuple[Dim, ...] = (rows[prefix], *row_shape)
+            check_shape(name, getattr(self, name), shape, np.dtype(dtype), dims)
+        if dims["M"] and (
+            self.match_left.max() >= dims["NL"] or self.match_right.max() >= dims["NR"]
+        ):
             raise ValueError("match indices point past the keypoint arrays")
         if np.any(np.diff(self.frame_stamp_ns) < 0):
             raise ValueError("frame stamps are not in time order")
+
+
+def _column_fields() -> dict[str, tuple[str, str]]:
+    """{field name: (prefix, key)} of the keypoint and match columns of `FeatureSet`."""
+    out = {}
+    for f in fields(FeatureSet):
+        if f.name.startswith(("left_", "right_", "match_")) and not f.name.endswith("offsets"):
+            prefix, key = f.name.split("_", 1)
+            out[f.name] = (prefix, key)
+    return out
 
 
 @dataclass
@@ -199,34 +227,14 @@ class FeatureSetBuilder:
             self._counts[prefix].append(self._counts[prefix][-1] + (n or 0))
 
     def build(self) -> FeatureSet:
-        dtypes = {f.name: f for f in fields(FeatureSet)}
-        shapes = {
-            "uv_raw_px": (2,),
-            "uv_px": (2,),
-            "desc": (DESCRIPTOR_SIZE,),
-            "p_cam_m": (3,),
-            "cov_cam_m2": (3, 3),
-        }
-        kinds = {
-            "desc": np.uint8,
-            "octave": np.int32,
-            "left": np.int64,
-            "right": np.int64,
-            "landmark_id": np.int64,
-            "p_cam_m": np.float64,
-            "cov_cam_m2": np.float64,
-        }
         arrays: dict[str, np.ndarray] = {}
-        for name in dtypes:
-            if not name.startswith(("left_", "right_", "match_")) or name.endswith("offsets"):
-                continue
-            key = name.split("_", 1)[1]
-            dtype = kinds.get(key, np.float32)
+        for name, (_, key) in _column_fields().items():
+            row_shape, dtype = _COLUMNS.get(key, _FLOAT32_SCALAR)
             parts = self._parts.get(name)
             if parts:
                 arrays[name] = np.concatenate(parts).astype(dtype, copy=False)
             else:
-                arrays[name] = np.zeros((0, *shapes.get(key, ())), dtype=dtype)
+                arrays[name] = np.zeros((0, *row_shape), dtype=dtype)
         fs = FeatureSet(
             vehicle=self.vehicle,
             rig=self.rig,

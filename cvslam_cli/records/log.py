@@ -1,4 +1,4 @@
-"""Typed records produced from logs (and consumed by every later stage).
+"""The records a log gives: images, stereo pairs, IMU samples, odometry, poses.
 
 All times are integer nanoseconds (`stamp_ns`, the message header stamp). Arrays are float64
 unless stated. Frames: poses are in the nav frame (NED) unless the record says otherwise;
@@ -9,10 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from cvslam_cli.records.arrays import F64
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,11 +90,3 @@ class PoseRecord:
 
 
 Record = StereoFrame | ImuSample | OdometryRecord | PoseRecord
-
-
-def record_stamp(rec: Record) -> int:
-    return rec.stamp_ns
-
-
-def finite(a: np.ndarray) -> bool:
-    return bool(np.all(np.isfinite(a)))
