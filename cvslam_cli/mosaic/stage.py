@@ -328,7 +328,7 @@ def _vehicle_rois(
     multiples of the blender's unit so that an image prepared once is added to both."""
     unit = 1 << cfg.multiband_bands if cfg.blend == "multiband" else 1
     sub_rois = {}
-    for v in {f.vehicle for f in frames}:
+    for v in sorted({f.vehicle for f in frames}):  # sorted: not in hash order
         roi = grid.roi_of(_union([f.box_ne for f in frames if f.vehicle == v]))
         assert roi is not None
         r0, c0 = roi[0] // unit * unit, roi[1] // unit * unit
