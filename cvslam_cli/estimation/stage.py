@@ -51,6 +51,7 @@ from cvslam_cli.estimation.slam import (
 from cvslam_cli.estimation.vehicle import VehicleInput
 from cvslam_cli.geometry.rotations import (
     euler_zyx_to_matrix,
+    interpolate_positions,
     matrix_to_euler_zyx,
     matrix_to_quat_xyzw,
     quat_xyzw_to_matrix,
@@ -354,23 +355,13 @@ def pose_table(track: VehicleTrack) -> PoseTable:
     return PoseTable(track.stamps_ns, track.p_nav_m, q.reshape(-1, 4))
 
 
-def truth_at(gt: PoseTable, stamps_ns: np.ndarray) -> np.ndarray:
-    """(F, 3) ground-truth positions interpolated at stamps (NaN outside the truth)."""
-    out = np.full((len(stamps_ns), 3), np.nan)
-    if len(gt) < 2:
-        return out
-    t = gt.stamps_ns.astype(float)
-    inside = (stamps_ns >= gt.stamps_ns[0]) & (stamps_ns <= gt.stamps_ns[-1])
-    for k in range(3):
-        out[inside, k] = np.interp(stamps_ns[inside].astype(float), t, gt.p_m[:, k])
-    return out
-
-
 def _errors(track: VehicleTrack, gt: PoseTable) -> tuple[float, float]:
     """(final error, RMSE) of positions against ground truth, NaN without truth."""
     if len(track.stamps_ns) == 0:
         return float("nan"), float("nan")
-    err = np.linalg.norm(track.p_nav_m - truth_at(gt, track.stamps_ns), axis=1)
+    err = np.linalg.norm(
+        track.p_nav_m - interpolate_positions(gt.stamps_ns, gt.p_m, track.stamps_ns), axis=1
+    )
     ok = np.isfinite(err)
     if not ok.any():
         return float("nan"), float("nan")

@@ -42,6 +42,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
 
+from cvslam_cli.geometry.rotations import interpolate_positions
 from cvslam_cli.records.arrays import F64
 
 DPI = 120
@@ -193,19 +194,12 @@ def _vehicle_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
     ]
 
 
-def positions_at(series: Series, t_s: np.ndarray) -> F64:
-    """(len(t_s), 3) positions of `series` linearly interpolated at `t_s`; NaN outside its
-    time span (no extrapolation)."""
-    t = np.asarray(t_s, dtype=np.float64)
-    out = np.column_stack([np.interp(t, series.t_s, series.p_m[:, k]) for k in range(3)])
-    out[(t < series.t_s[0]) | (t > series.t_s[-1])] = np.nan
-    return out
-
-
 def position_error_m(truth: Series, estimate: Series) -> F64:
     """(K,) |p_estimate - p_truth| at the estimate's stamps, truth interpolated linearly;
     NaN where the truth does not cover the stamp."""
-    return np.linalg.norm(estimate.p_m - positions_at(truth, estimate.t_s), axis=1)
+    return np.linalg.norm(
+        estimate.p_m - interpolate_positions(truth.t_s, truth.p_m, estimate.t_s), axis=1
+    )
 
 
 def rmse_m(errors_m: np.ndarray) -> float:
@@ -243,7 +237,7 @@ def position_components(
     if len({s.vehicle for s in series}) != 1:
         raise ValueError(f"series of different vehicles: {sorted({s.vehicle for s in series})}")
     colour = _colours_for(colours, [estimate.vehicle])[estimate.vehicle]
-    truth_at_est = positions_at(truth, estimate.t_s)
+    truth_at_est = interpolate_positions(truth.t_s, truth.p_m, estimate.t_s)
     with _style():
         fig = _figure(COMPONENTS_SIZE_IN)
         axes = fig.subplots(3, 1, sharex=True)

@@ -131,6 +131,26 @@ def is_rotation(R: F64, tol: float = 1e-6) -> bool:
     )
 
 
+def interpolate_positions(stamps: NDArray, p: F64, at: NDArray) -> F64:
+    """(K, 3) positions p (N, 3) given at `stamps` (N,) (increasing; integer nanoseconds or
+    seconds) linearly interpolated at `at` (K,) in the same unit; NaN outside the stamps'
+    span (no extrapolation). Times are taken relative to the first stamp, so integer
+    nanosecond stamps lose no precision."""
+    st = np.asarray(stamps)
+    at = np.asarray(at)
+    out = np.full((len(at), 3), np.nan)
+    if len(st) == 0:
+        return out
+    ok = (at >= st[0]) & (at <= st[-1])
+    if not ok.any():
+        return out
+    t = (st - st[0]).astype(float)
+    ta = (at[ok] - st[0]).astype(float)
+    for k in range(3):
+        out[ok, k] = np.interp(ta, t, p[:, k])
+    return out
+
+
 def interpolate_poses(
     stamps_ns: NDArray[np.int64], p: F64, q_xyzw: F64, at_ns: NDArray[np.int64]
 ) -> tuple[F64, F64, NDArray[np.bool_]]:
@@ -142,7 +162,7 @@ def interpolate_poses(
 
     at = np.asarray(at_ns, dtype=np.int64)
     st = np.asarray(stamps_ns, dtype=np.int64)
-    out_p = np.full((len(at), 3), np.nan)
+    out_p = interpolate_positions(st, p, at)
     out_R = np.full((len(at), 3, 3), np.nan)
     if len(st) == 0:
         return out_p, out_R, np.zeros(len(at), bool)
@@ -151,8 +171,6 @@ def interpolate_poses(
         return out_p, out_R, ok
     t = (st - st[0]).astype(float)
     ta = (at[ok] - st[0]).astype(float)
-    for k in range(3):
-        out_p[ok, k] = np.interp(ta, t, p[:, k])
     rots = Rotation.from_quat(np.asarray(q_xyzw, dtype=float))
     if len(st) == 1:
         out_R[ok] = rots.as_matrix()[0]

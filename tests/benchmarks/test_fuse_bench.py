@@ -69,6 +69,7 @@ from cvslam_cli.estimation.motion.models import InitialUncertainty, InsModel, pr
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.slam import Slam, SlamResult
 from cvslam_cli.estimation.state import JointState
+from cvslam_cli.geometry.rotations import interpolate_positions
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
@@ -576,7 +577,10 @@ def _fresh_run(sim: Path, spec: RunSpec) -> RunResult:
     rmse = {}
     for v in spec.vehicles:
         tr = res.tracks[v]
-        err = np.linalg.norm(tr.p_nav_m - stage.truth_at(truth[v], tr.stamps_ns), axis=1)
+        err = np.linalg.norm(
+            tr.p_nav_m - interpolate_positions(truth[v].stamps_ns, truth[v].p_m, tr.stamps_ns),
+            axis=1,
+        )
         rmse[v] = float(np.sqrt(np.nanmean(err**2)))
     flight_s = max((int(v.features.frame_stamp_ns[-1]) - v.start_ns) * 1e-9 for v in inputs)
     rows: list[tuple[float, float, int, str]] = []

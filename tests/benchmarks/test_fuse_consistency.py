@@ -56,6 +56,7 @@ from threadpoolctl import threadpool_limits
 from cvslam_cli.config import load_config
 from cvslam_cli.estimation import stage
 from cvslam_cli.estimation.slam import Slam, dead_reckoning_track
+from cvslam_cli.geometry.rotations import interpolate_positions
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
@@ -167,7 +168,7 @@ def one_run(seed: int) -> RunResult:
         logs = LogSet([McapLogSource(out / f"{VEHICLE}.mcap")], cfg.logs)
         inputs, truth = stage.build_inputs(cfg, features, logs)
         stamps = inputs[0].features.frame_stamp_ns
-        gt = stage.truth_at(truth[VEHICLE], stamps)
+        gt = interpolate_positions(truth[VEHICLE].stamps_ns, truth[VEHICLE].p_m, stamps)
         for kind in STATE["filters"]:
             res = Slam(inputs, stage.slam_settings(cfg.fuse, kind)).run()
             tr = res.tracks[VEHICLE]

@@ -82,6 +82,7 @@ from cvslam_cli.estimation import stage
 from cvslam_cli.estimation.settings import landmark_bound
 from cvslam_cli.estimation.slam import Slam, SlamResult, dead_reckoning_track
 from cvslam_cli.estimation.vehicle import VehicleInput
+from cvslam_cli.geometry.rotations import interpolate_positions
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
@@ -242,7 +243,10 @@ def one_run(job: tuple[str, int]) -> RunResult:
     with threadpool_limits(limits=1, user_api="blas"):
         inputs, truth = _inputs(cfg, _sim(name, seed, cache))
         t0_ns = SIM_EPOCH_NS
-        gts = {v.name: stage.truth_at(truth[v.name], _frames(v)) for v in inputs}
+        gts = {
+            v.name: interpolate_positions(truth[v.name].stamps_ns, truth[v.name].p_m, _frames(v))
+            for v in inputs
+        }
         t_s = {v.name: (_frames(v) - t0_ns) * 1e-9 for v in inputs}
         tracks: dict[tuple[str, str], Track] = {}
         stats: dict[str, FilterStats] = {}
@@ -595,7 +599,9 @@ def speed_run(spec: SpeedSpec) -> SpeedRow:
     rmse = {}
     for v in chosen:
         tr = res.tracks[v.name]
-        err = tr.p_nav_m - stage.truth_at(truth[v.name], tr.stamps_ns)
+        err = tr.p_nav_m - interpolate_positions(
+            truth[v.name].stamps_ns, truth[v.name].p_m, tr.stamps_ns
+        )
         rmse[v.name] = float(np.sqrt(np.nanmean(np.sum(err**2, axis=1))))
     tl = pd.DataFrame(res.timeline)
     return SpeedRow(

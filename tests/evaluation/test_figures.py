@@ -11,6 +11,7 @@ from matplotlib.figure import Figure
 
 from cvslam_cli.evaluation import figures as figs
 from cvslam_cli.evaluation.figures import Series
+from cvslam_cli.geometry.rotations import interpolate_positions
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -103,7 +104,7 @@ def test_series_checks_shapes_and_stamps() -> None:
 
 def test_positions_at_interpolates_without_extrapolating() -> None:
     truth = truth_series()
-    got = figs.positions_at(truth, np.array([-0.1, 0.25, 10.0, 10.1]))
+    got = interpolate_positions(truth.t_s, truth.p_m, np.array([-0.1, 0.25, 10.0, 10.1]))
     np.testing.assert_allclose(got[1], [0.5, 4.75, -100.0])
     np.testing.assert_allclose(got[2], truth.p_m[-1])
     assert np.isnan(got[[0, 3]]).all()
