@@ -44,12 +44,16 @@ class ReorderWindow:
         self._newest = -(2**63)
         self.peak = 0
 
-    def push(self, rec: Any) -> Iterator[Any]:
-        """Hold `rec`; the records it releases, oldest first."""
-        heap = self._heap
-        heapq.heappush(heap, (rec.stamp_ns, next(self._counter), rec))
-        self.peak = max(self.peak, len(heap))
+    def push(self, rec: Any) -> None:
+        """Hold `rec` until the window has passed it (`released`)."""
+        heapq.heappush(self._heap, (rec.stamp_ns, next(self._counter), rec))
+        self.peak = max(self.peak, len(self._heap))
         self._newest = max(self._newest, rec.stamp_ns)
+
+    def released(self) -> Iterator[Any]:
+        """The records the window has passed (older than the newest by `window_ns` or more),
+        oldest first."""
+        heap = self._heap
         while heap and heap[0][0] <= self._newest - self.window_ns:
             yield heapq.heappop(heap)[2]
 

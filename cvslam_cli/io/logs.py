@@ -104,9 +104,10 @@ class LogSet:
             rec = self._convert(raw, rigs)
             if rec is None:
                 continue
-            for ready in window.push(rec):
-                yield from pairer.push(ready)
+            window.push(rec)
             self.peak_buffered = max(self.peak_buffered, window.peak)
+            for ready in window.released():
+                yield from pairer.push(ready)
         for ready in window.drain():
             yield from pairer.push(ready)
         pairer.finish()

@@ -38,10 +38,12 @@ class _Stamped:
 
 def test_reorder_window_releases_in_stamp_order_once_the_window_has_passed():
     window = ReorderWindow(10)
-    stream = [_Stamped(5), _Stamped(0), _Stamped(8), _Stamped(12), _Stamped(15, "a")]
-    released = [[r.stamp_ns for r in window.push(rec)] for rec in stream]
+    released = []
+    for rec in [_Stamped(5), _Stamped(0), _Stamped(8), _Stamped(12), _Stamped(15, "a")]:
+        window.push(rec)
+        released.append([r.stamp_ns for r in window.released()])
     assert released == [[], [], [], [0], [5]]  # 12 releases <= 2, 15 releases <= 5
-    late = _Stamped(9)  # still within the window: put in order
-    assert [r.stamp_ns for r in window.push(late)] == []
+    window.push(_Stamped(9))  # late, but still within the window: put in order
+    assert list(window.released()) == []
     assert [(r.stamp_ns, r.tag) for r in window.drain()] == [(8, ""), (9, ""), (12, ""), (15, "a")]
     assert window.peak == 4
