@@ -11,8 +11,10 @@ from typing import Any
 
 from cvslam_cli.config import Config
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.io.logs import ROLES, LogSet, Problem
+from cvslam_cli.io.log_stats import Problem
+from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import LogSource
+from cvslam_cli.io.topic_map import ROLES
 
 
 def inspect_logs(sources: list[LogSource], cfg: Config) -> dict[str, Any]:

@@ -31,8 +31,9 @@ from tqdm import tqdm
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, ExtractConfig
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.features.matching import auto_z_min_m, match_stereo, undistort_keypoints
+from cvslam_cli.features.matching import match_stereo
 from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
+from cvslam_cli.features.windows import auto_z_min_m, undistort_keypoints
 from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.geometry.stereo import (
     projection_matrices,

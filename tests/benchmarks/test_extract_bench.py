@@ -43,9 +43,10 @@ import numpy as np
 import pytest
 
 from cvslam_cli.config import ExtractConfig, load_config
-from cvslam_cli.features.matching import match_brute_force, match_stereo, undistort_keypoints
+from cvslam_cli.features.matching import match_stereo
 from cvslam_cli.features.sift import detect_and_describe, to_grey_u8
 from cvslam_cli.features.stage import _csv_text, process_frame, run, stereo_limits
+from cvslam_cli.features.windows import undistort_keypoints
 from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.geometry.projection import pixel_rays
 from cvslam_cli.geometry.rotations import make_T
@@ -61,6 +62,7 @@ from cvslam_cli.sim.stage import run as simulate
 from cvslam_cli.sim.terrain import Terrain, render_terrain_view
 from cvslam_cli.sim.vehicles import R_BODY_CAM_DOWN, build_rig
 from tests.conftest import shared_data_dir
+from tests.features.reference_matcher import match_brute_force
 
 SCENARIO = SCENARIO_DIR / "uav2_paper.yaml"
 SIM_SETS = ["duration_s=16.0"]  # uav1: 160 pairs, uav2 (starts at 8 s): 80 pairs

@@ -1,7 +1,8 @@
-"""Stereo-constrained matching (eq. 20-34): window geometry on rectified and unrectified
-rigs, the vectorised candidate search against an exhaustive one, the vectorised matcher
-against a straightforward reference (per-keypoint loops), precision on rendered stereo pairs
-with known correspondences, and epipolar consistency on EuRoC and KITTI."""
+"""The descriptor test of stereo matching: the ratio test, lone candidates and the
+left-right check on toy descriptors, the vectorised matcher against the plain reference
+matcher (the readable specification, tests/features/reference_matcher.py) on random scenes and
+rendered pairs, precision on rendered stereo pairs with known correspondences, and epipolar
+consistency on EuRoC and KITTI."""
 
 from __future__ import annotations
 
@@ -16,152 +17,33 @@ import pytest
 
 from cvslam_cli.config import AdaptiveSiftConfig, SiftConfig, StereoMatchConfig
 from cvslam_cli.features.matching import (
-    LONE_D2_QUANTILE,
-    MIN_WINDOWS_FOR_TYPICAL_D2,
     StereoMatches,
+    _descriptor_distances,
+    _distance_keys,
+    _mutual_best,
     _quantile_f32,
-    _rig_geometry,
-    _windows,
-    auto_z_min_m,
-    candidate_pairs,
-    epipolar_residual_px,
-    fundamental_matrix,
-    match_brute_force,
+    _two_smallest_per_left,
+    _unrelated_pairs,
     match_stereo,
-    search_windows,
-    undistort_keypoints,
 )
 from cvslam_cli.features.sift import Keypoints, detect_and_describe
+from cvslam_cli.features.windows import undistort_keypoints
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.projection import pixel_rays, project_points, undistort_pixels
-from cvslam_cli.geometry.rotations import euler_zyx_to_matrix, invert_T, make_T
+from cvslam_cli.geometry.rotations import euler_zyx_to_matrix, make_T
 from cvslam_cli.geometry.stereo import projection_matrices, triangulate
 from cvslam_cli.sim.render import photometric
 from cvslam_cli.sim.terrain import Terrain, TerrainSpec, make_terrain, render_terrain_view
+from tests.features.reference_matcher import (
+    epipolar_residual_px,
+    match_brute_force,
+    match_reference,
+)
+from tests.features.rigs import RIGS, H, W, to_right
 
-W, H, F = 752, 480, 450.0
-K = np.array([[F, 0.0, 376.0], [0.0, F, 240.0], [0.0, 0.0, 1.0]])
-BASELINE_M = 1.0
 # camera x -> body right, y -> body backwards, z -> body down: a nadir camera
 R_BODY_CAM = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 SIFT, ADAPTIVE, MATCH = SiftConfig(), AdaptiveSiftConfig(), StereoMatchConfig()
-
-
-def _rotation_deg(axis: list[float], deg: float) -> np.ndarray:
-    a = np.asarray(axis, float)
-    R, _ = cv2.Rodrigues(a / np.linalg.norm(a) * np.radians(deg))
-    return R
-
-
-def _camera(D: list[float] | None = None, T_body_cam: np.ndarray | None = None) -> CameraModel:
-    T = np.eye(4) if T_body_cam is None else T_body_cam
-    if D is None:
-        return CameraModel(W, H, K.copy(), T_body_cam=T)
-    return CameraModel(
-        W, H, K.copy(), D=np.asarray(D, float), distortion_model="plumb_bob", T_body_cam=T
-    )
-
-
-RIGS = {
-    "rectified": StereoRig(
-        _camera(), _camera(T_body_cam=make_T(np.eye(3), np.array([BASELINE_M, 0.0, 0.0])))
-    ),
-    # 2 degrees of relative rotation, an off-axis baseline, different lens distortion
-    "unrectified": StereoRig(
-        _camera([-0.25, 0.07, 0.001, -0.0005, 0.0]),
-        _camera(
-            [-0.22, 0.05, -0.0008, 0.0004, 0.0],
-            make_T(_rotation_deg([0.3, 1.0, 0.2], 2.0), np.array([BASELINE_M, 0.02, 0.01])),
-        ),
-    ),
-}
-
-
-def _T_right_left(rig: StereoRig) -> np.ndarray:
-    return invert_T(rig.T_left_right)
-
-
-def _to_right(rig: StereoRig, p_left: np.ndarray) -> np.ndarray:
-    T = _T_right_left(rig)
-    return p_left @ T[:3, :3].T + T[:3, 3]
-
-
-# -- geometry ------------------------------------------------------------------------------
-
-
-def test_undistort_keypoints_gives_ideal_pixels():
-    cam = RIGS["unrectified"].left
-    rng = np.random.default_rng(0)
-    xy = rng.uniform([-0.7, -0.45], [0.7, 0.45], (200, 2))
-    uv_raw, _ = project_points(cam, np.column_stack([xy, np.ones(200)]))
-    ideal = undistort_keypoints(cam, uv_raw)
-    np.testing.assert_allclose(ideal, xy * F + K[:2, 2], atol=1e-6)
-    plain = RIGS["rectified"].left
-    np.testing.assert_array_equal(undistort_keypoints(plain, uv_raw), uv_raw)
-    assert undistort_keypoints(cam, np.zeros((0, 2))).shape == (0, 2)
-
-
-def test_rectified_window_is_the_disparity_range():
-    rig = RIGS["rectified"]
-    uv = np.array([[400.0, 100.0], [20.0, 470.0]])
-    z_min = auto_z_min_m(rig)
-    assert z_min == pytest.approx(max(0.5, 4 * BASELINE_M))
-    win = search_windows(uv, rig, z_min, 1.5)
-    np.testing.assert_allclose(win.start_px, uv, atol=1e-9)  # zero disparity at infinity
-    np.testing.assert_allclose(win.direction, [[-1.0, 0.0]] * 2, atol=1e-12)
-    np.testing.assert_allclose(win.length_px, F * BASELINE_M / z_min)  # HD_max = f b / z_min
-    assert auto_z_min_m(rig, 7.0) == 7.0
-
-
-@pytest.mark.parametrize("rig_name", list(RIGS))
-def test_window_holds_the_right_projections_of_depths_beyond_z_min(rig_name: str):
-    rig = RIGS[rig_name]
-    rng = np.random.default_rng(1)
-    n = 500
-    uv_l = rng.uniform([0, 0], [W, H], (n, 2))
-    ray = np.column_stack([(uv_l - K[:2, 2]) / F, np.ones(n)])
-    z_min = 3.0
-    win = search_windows(uv_l, rig, z_min, 0.1)
-    idx = np.arange(n)
-    for z, inside in ((z_min * 1.001, True), (7.0, True), (1e6, True), (z_min / 2, False)):
-        p_r = _to_right(rig, ray * z)
-        uv_r = p_r[:, :2] / p_r[:, 2:3] * F + K[:2, 2]
-        assert np.all(win.contains(idx, uv_r) == inside), z
-        np.testing.assert_allclose(epipolar_residual_px(rig, uv_l, uv_r), 0.0, atol=1e-6)
-    # x_r^T F x_l = 0
-    p_r = _to_right(rig, ray * 10.0)
-    x_r = np.column_stack([p_r[:, :2] / p_r[:, 2:3] * F + K[:2, 2], np.ones(n)])
-    x_l = np.column_stack([uv_l, np.ones(n)])
-    Fm = fundamental_matrix(rig)
-    assert np.abs(np.einsum("ij,jk,ik->i", x_r, Fm, x_l)).max() < 1e-9 * np.abs(Fm).max() * W
-
-
-def test_row_windows_of_a_rectified_rig_equal_the_general_windows():
-    rig = RIGS["rectified"]
-    geo = _rig_geometry(rig)
-    assert geo.rows_only and not _rig_geometry(RIGS["unrectified"]).rows_only
-    uv = np.random.default_rng(6).uniform([0, 0], [W, H], (300, 2))
-    rows = _windows(uv, geo, 3.0, 1.5)
-    general = _windows(uv, dataclasses.replace(geo, rows_only=False), 3.0, 1.5)
-    for name in ("start_px", "direction", "length_px"):
-        np.testing.assert_allclose(getattr(rows, name), getattr(general, name), atol=1e-9)
-    np.testing.assert_array_equal(rows.valid, general.valid)
-
-
-@pytest.mark.parametrize("rig_name", list(RIGS))
-def test_vectorised_candidates_equal_the_exhaustive_search(rig_name: str):
-    rig = RIGS[rig_name]
-    rng = np.random.default_rng(2)
-    left = rng.uniform([0, 0], [W, H], (400, 2))
-    right = rng.uniform([-50, -20], [W + 50, H + 20], (3000, 2))
-    win = search_windows(left, rig, 2.0, 3.0)
-    li, rj = candidate_pairs(win, right)
-    all_l, all_r = (a.ravel() for a in np.meshgrid(np.arange(400), np.arange(3000), indexing="ij"))
-    inside = win.contains(all_l, right[all_r])
-    expected = set(zip(all_l[inside].tolist(), all_r[inside].tolist(), strict=True))
-    assert set(zip(li.tolist(), rj.tolist(), strict=True)) == expected
-    assert len(li) == len(expected) > 100
-    assert np.all(np.diff(li) >= 0)
 
 
 def test_empty_inputs():
@@ -201,80 +83,7 @@ def test_ratio_test_and_left_right_check_on_toy_descriptors():
     assert loose.left.tolist() == [0, 1, 2]
 
 
-# -- the vectorised matcher against a straightforward reference ---------------------------
-
-
-def _reference_match(
-    luv: np.ndarray,
-    ld: np.ndarray,
-    ruv: np.ndarray,
-    rd: np.ndarray,
-    rig: StereoRig,
-    cfg: StereoMatchConfig,
-) -> StereoMatches:
-    """The matcher's rules written plainly: every (left, right) pair through
-    `SearchWindow.contains`, then a loop per left keypoint (sort of its candidates'
-    distances: D1, D2, ratio test) and per right keypoint (its nearest left keypoint; equal
-    distances go to the first left index). Distances in float64 and rounded once to float32
-    (sqrt of an integer: the same as float32 arithmetic), the ratio test in float32 as the
-    matcher does it."""
-    n, m = len(luv), len(ruv)
-    if n == 0 or m == 0:
-        return StereoMatches.empty(n, m)
-    win = search_windows(luv, rig, auto_z_min_m(rig, cfg.z_min_m), cfg.vertical_tolerance_px)
-    all_l, all_r = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(m), indexing="ij"))
-    inside = win.contains(all_l, ruv[all_r])
-    li, rj = all_l[inside], all_r[inside]
-    if len(li) == 0:
-        return StereoMatches.empty(n, m)
-
-    def distances(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        diff = ld[i].astype(np.float64) - rd[j].astype(np.float64)
-        return np.sqrt((diff**2).sum(axis=1)).astype(np.float32)
-
-    dist = distances(li, rj)
-    examined = len(li)
-    best: dict[int, tuple[int, np.float32, np.float32 | None]] = {}  # left -> (right, D1, D2)
-    for i in np.unique(li):
-        mine = np.flatnonzero(li == i)
-        order = np.argsort(dist[mine], kind="stable")
-        d2 = dist[mine[order[1]]] if len(mine) > 1 else None
-        best[int(i)] = (int(rj[mine[order[0]]]), dist[mine[order[0]]], d2)
-    multi = np.array([b[2] for b in best.values() if b[2] is not None], np.float32)
-    if len(multi) >= MIN_WINDOWS_FOR_TYPICAL_D2:
-        typical = np.float32(np.quantile(multi, LONE_D2_QUANTILE))
-    else:
-        k = min(64, n * m)
-        i = np.arange(k)
-        unrelated = distances((i * n) // k, (i * 7919 + m // 2) % m)
-        typical = np.float32(np.quantile(unrelated, LONE_D2_QUANTILE))
-        examined += k
-    nearest_left = {}
-    for j in np.unique(rj):
-        mine = np.flatnonzero(rj == j)
-        nearest_left[int(j)] = int(li[mine[np.lexsort((li[mine], dist[mine]))[0]]])
-    rows = []
-    for i, (j, d1, d2) in best.items():
-        lone = d2 is None
-        if not d1 < cfg.dist_ratio * (typical if lone else d2):
-            continue
-        if cfg.left_right_check and nearest_left[j] != i:
-            continue
-        ratio = np.float32(0.0) if lone else d1 / d2
-        rows.append((i, j, np.float32(luv[i, 0] - ruv[j, 0]), d1, ratio))
-    if not rows:
-        return StereoMatches.empty(n, m, examined)
-    left, right, disparity, distance, ratio = (list(c) for c in zip(*rows, strict=True))
-    return StereoMatches(
-        np.array(left, np.int64),
-        np.array(right, np.int64),
-        np.array(disparity, np.float32),
-        np.array(distance, np.float32),
-        np.array(ratio, np.float32),
-        examined,
-        n,
-        m,
-    )
+# -- the vectorised matcher against the reference matcher ------------------------------
 
 
 def _assert_same_matches(got: StereoMatches, want: StereoMatches, exact: bool = True) -> None:
@@ -307,7 +116,7 @@ def _random_scene(
     uv_l = rng.uniform([0, 0], [W, H], (n_true, 2))
     xy = undistort_pixels(rig.left, uv_l)
     depth = rng.uniform(2.0, 60.0, n_true)
-    p_right = _to_right(rig, np.column_stack([xy, np.ones(n_true)]) * depth[:, None])
+    p_right = to_right(rig, np.column_stack([xy, np.ones(n_true)]) * depth[:, None])
     uv_r = p_right[:, :2] / p_right[:, 2:3] @ rig.right.K[:2, :2].T + rig.right.K[:2, 2]
     uv_l = undistort_keypoints(rig.left, uv_l)
     uv_r += rng.normal(0.0, 0.3, uv_r.shape)
@@ -349,7 +158,7 @@ def test_matches_equal_the_reference_on_random_scenes(rig_name: str, cfg_name: s
     for seed in range(3):
         left, ld, right, rd = _random_scene(rig, 10 + seed)
         got = match_stereo(left, ld, right, rd, rig, cfg)
-        _assert_same_matches(got, _reference_match(left, ld, right, rd, rig, cfg))
+        _assert_same_matches(got, match_reference(left, ld, right, rd, rig, cfg))
         assert len(got) > 50
         # duplicated left keypoints tie for their right keypoint: the first left index wins
         _, first, group = np.unique(
@@ -372,12 +181,12 @@ def test_matches_equal_the_reference_with_few_windows_and_float_descriptors(rig_
     # D2 comes from the spread-out unrelated pairs
     left, ld, right, rd = _random_scene(rig, 20, n_true=12, n_other=3, n_dup=1)
     got = match_stereo(left, ld, right, rd, rig, MATCH)
-    _assert_same_matches(got, _reference_match(left, ld, right, rd, rig, MATCH))
+    _assert_same_matches(got, match_reference(left, ld, right, rd, rig, MATCH))
     assert got.candidates_examined > len(left) and np.any(got.ratio == 0)
     # float descriptors (not integer-valued)
     left, ld, right, rd = _random_scene(rig, 21, dtype=np.float32)
     got = match_stereo(left, ld, right, rd, rig, MATCH)
-    _assert_same_matches(got, _reference_match(left, ld, right, rd, rig, MATCH), exact=False)
+    _assert_same_matches(got, match_reference(left, ld, right, rd, rig, MATCH), exact=False)
     assert len(got) > 50
 
 
@@ -388,6 +197,41 @@ def test_quantile_is_numpys_bit_for_bit():
         for q in (0.0, 0.1, 0.25, 0.5, 0.75, 1.0):
             want = float(np.quantile(values, q))
             assert _quantile_f32(values.copy(), q) == want, (size, q)
+
+
+def test_descriptor_distances_exact_for_uint8_over_several_blocks():
+    rng = np.random.default_rng(8)
+    ld, rd = rng.integers(0, 256, (300, 128)), rng.integers(0, 256, (200, 128))
+    li, rj = rng.integers(0, 300, 5000), rng.integers(0, 200, 5000)  # > one 4096-pair block
+    want = np.sqrt(((ld[li] - rd[rj]).astype(np.float64) ** 2).sum(axis=1)).astype(np.float32)
+    got = _descriptor_distances(ld.astype(np.uint8), rd.astype(np.uint8), li, rj)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
+    floats = _descriptor_distances(ld.astype(np.float32), rd.astype(np.float32), li, rj)
+    np.testing.assert_allclose(floats, want, rtol=1e-6)
+
+
+def test_best_two_and_mutual_best_from_distance_keys():
+    # pairs (left, right, distance): left 0 has three candidates, left 1 one, left 2 none,
+    # left 3 two; right 5 is nearest to left 1 (1.0 < 2.0); right 6 is as near to left 0 as
+    # to left 3 (0.5): the tie goes to the smaller left index
+    li = np.array([0, 0, 0, 1, 3, 3])
+    rj = np.array([5, 6, 7, 5, 6, 7])
+    dist = np.array([2.0, 0.5, 3.0, 1.0, 0.5, 0.75], np.float32)
+    keys = _distance_keys(dist)
+    best, d1, d2 = _two_smallest_per_left(keys, li, 4)
+    assert best.tolist() == [1, 3, 6, 4]  # 6 = len(li): the spare slot of "no candidate"
+    assert d1.tolist() == [0.5, 1.0, np.inf, 0.5] and d2.tolist() == [2.0, np.inf, np.inf, 0.75]
+    mutual = _mutual_best(keys, li, rj, best, 8)
+    assert mutual[[0, 1, 3]].tolist() == [True, True, False]
+
+
+def test_unrelated_pairs_spread_over_both_lists():
+    li, rj = _unrelated_pairs(300, 200)
+    assert len(li) == 64 and len(set(zip(li.tolist(), rj.tolist(), strict=True))) == 64
+    assert li.min() == 0 and li.max() > 280 and rj.max() > 180 and np.all(rj < 200)
+    li, rj = _unrelated_pairs(3, 4)
+    assert len(li) == 12 and li.max() == 2 and rj.max() == 3
 
 
 # -- rendered stereo pairs with known correspondences ---------------------------------------
@@ -447,7 +291,7 @@ def _true_right_px(pair: Pair) -> np.ndarray:
     depth = cv2.remap(pair.depth_left_m, uv[:, :1], uv[:, 1:], cv2.INTER_LINEAR).ravel()
     xy = undistort_pixels(pair.rig.left, pair.left.uv_raw_px)
     p_left = np.column_stack([xy, np.ones(len(xy))]) * depth[:, None]
-    uv_r, _ = project_points(pair.rig.right, _to_right(pair.rig, p_left))
+    uv_r, _ = project_points(pair.rig.right, to_right(pair.rig, p_left))
     return uv_r
 
 
@@ -489,7 +333,7 @@ def test_matches_equal_the_reference_on_rendered_pairs(rendered_pairs, rig_name:
         ul = undistort_keypoints(pair.rig.left, pair.left.uv_raw_px)
         ur = undistort_keypoints(pair.rig.right, pair.right.uv_raw_px)
         got = match_stereo(ul, pair.left.desc, ur, pair.right.desc, pair.rig, MATCH)
-        want = _reference_match(ul, pair.left.desc, ur, pair.right.desc, pair.rig, MATCH)
+        want = match_reference(ul, pair.left.desc, ur, pair.right.desc, pair.rig, MATCH)
         _assert_same_matches(got, want)
         assert len(got) > 50
 
@@ -591,6 +435,7 @@ def test_real_pairs_are_epipolar_and_at_plausible_depths(
         t1 = time.perf_counter()
         bf = match_brute_force(kl.desc, kr.desc, MATCH.dist_ratio)
         t2 = time.perf_counter()
+        _assert_same_matches(m, match_reference(ul, kl.desc, ur, kr.desc, rig, MATCH))
         residual = epipolar_residual_px(rig, ul[m.left], ur[m.right])
         depth = triangulate(M_left, M_right, ul[m.left], ur[m.right])[:, 2]
         lo, hi = depth_range_m

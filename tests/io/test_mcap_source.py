@@ -12,8 +12,9 @@ from rosbags.typesys import Stores, get_typestore
 
 from cvslam_cli.config import load_config
 from cvslam_cli.errors import LogError
-from cvslam_cli.io.logs import LogSet, stamp_ns_of
+from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.ros_messages import stamp_ns_of
 from cvslam_cli.records.log import ImuSample, StereoFrame
 from tests.synth import write_stereo_log
 
