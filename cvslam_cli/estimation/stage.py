@@ -49,6 +49,7 @@ from cvslam_cli.estimation.slam import (
     merge_results,
 )
 from cvslam_cli.estimation.vehicle import VehicleInput
+from cvslam_cli.geometry.camera import stereo_rig
 from cvslam_cli.geometry.rotations import (
     euler_zyx_to_matrix,
     interpolate_positions,
@@ -71,7 +72,7 @@ from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
-from cvslam_cli.records.features import FeatureSet, stereo_rig
+from cvslam_cli.records.features import FeatureSet
 from cvslam_cli.records.log import ImuSample, OdometryRecord, PoseRecord
 from cvslam_cli.records.poses import PoseTable
 

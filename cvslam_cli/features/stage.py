@@ -34,7 +34,7 @@ from cvslam_cli.errors import CvslamError
 from cvslam_cli.features.matching import match_stereo
 from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
 from cvslam_cli.features.windows import auto_z_min_m, undistort_keypoints
-from cvslam_cli.geometry.camera import StereoRig
+from cvslam_cli.geometry.camera import StereoRig, rig_calibration
 from cvslam_cli.geometry.stereo import (
     projection_matrices,
     triangulate,
@@ -47,7 +47,7 @@ from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.parallel import STATE, ordered_map
-from cvslam_cli.records.features import FeatureSetBuilder, rig_calibration
+from cvslam_cli.records.features import FeatureSetBuilder
 from cvslam_cli.records.log import StereoFrame
 
 log = logging.getLogger("cvslam")

@@ -15,6 +15,7 @@ import numpy as np
 from cvslam_cli.errors import CalibrationError
 from cvslam_cli.geometry.rotations import invert_T, is_rotation, make_T
 from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.features import RigCalibration
 
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "none")
 
@@ -174,3 +175,37 @@ class StereoRig:
 
 def translation_T(x: float, y: float = 0.0, z: float = 0.0) -> F64:
     return make_T(np.eye(3), np.array([x, y, z]))
+
+
+def rig_calibration(rig: StereoRig) -> RigCalibration:
+    """The `RigCalibration` record of a stereo rig."""
+    D = np.zeros((2, 5))
+    for i, cam in enumerate((rig.left, rig.right)):
+        d = np.asarray(cam.D, dtype=float)[:5]
+        D[i, : d.size] = d
+    return RigCalibration(
+        K=np.stack([rig.left.K, rig.right.K]).astype(float),
+        D=D,
+        distortion_model=rig.left.distortion_model,
+        T_body_cam=np.stack([rig.left.T_body_cam, rig.right.T_body_cam]).astype(float),
+        size_px=np.array(
+            [[rig.left.width, rig.left.height], [rig.right.width, rig.right.height]], dtype=np.int64
+        ),
+    )
+
+
+def stereo_rig(calib: RigCalibration) -> StereoRig:
+    """The `StereoRig` of a stored calibration (inverse of `rig_calibration`)."""
+    cams = [
+        CameraModel(
+            width=int(calib.size_px[i, 0]),
+            height=int(calib.size_px[i, 1]),
+            K=calib.K[i],
+            D=calib.D[i],
+            distortion_model=calib.distortion_model,
+            T_body_cam=calib.T_body_cam[i],
+            source="feature file",
+        )
+        for i in range(2)
+    ]
+    return StereoRig(cams[0], cams[1])

@@ -19,7 +19,6 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.records.arrays import F32, F64, I32, I64, U8, Dim, check_shape
 
 FORMAT_NAME = "cvslam.features"
@@ -48,6 +47,7 @@ class RigCalibration:
 
     K: (2, 3, 3) left/right intrinsics; D: (2, 5) distortion (padded with zeros);
     distortion_model: e.g. "plumb_bob"; T_body_cam: (2, 4, 4); size_px: (2, 2) width, height.
+    To and from the camera models: `geometry.camera.rig_calibration` / `stereo_rig`.
     """
 
     K: F64
@@ -55,40 +55,6 @@ class RigCalibration:
     distortion_model: str
     T_body_cam: F64
     size_px: I64
-
-
-def rig_calibration(rig: StereoRig) -> RigCalibration:
-    """The `RigCalibration` record of a stereo rig."""
-    D = np.zeros((2, 5))
-    for i, cam in enumerate((rig.left, rig.right)):
-        d = np.asarray(cam.D, dtype=float)[:5]
-        D[i, : d.size] = d
-    return RigCalibration(
-        K=np.stack([rig.left.K, rig.right.K]).astype(float),
-        D=D,
-        distortion_model=rig.left.distortion_model,
-        T_body_cam=np.stack([rig.left.T_body_cam, rig.right.T_body_cam]).astype(float),
-        size_px=np.array(
-            [[rig.left.width, rig.left.height], [rig.right.width, rig.right.height]], dtype=np.int64
-        ),
-    )
-
-
-def stereo_rig(calib: RigCalibration) -> StereoRig:
-    """The `StereoRig` of a stored calibration (inverse of `rig_calibration`)."""
-    cams = [
-        CameraModel(
-            width=int(calib.size_px[i, 0]),
-            height=int(calib.size_px[i, 1]),
-            K=calib.K[i],
-            D=calib.D[i],
-            distortion_model=calib.distortion_model,
-            T_body_cam=calib.T_body_cam[i],
-            source="feature file",
-        )
-        for i in range(2)
-    ]
-    return StereoRig(cams[0], cams[1])
 
 
 @dataclass(frozen=True, eq=False)

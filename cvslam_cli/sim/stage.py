@@ -33,7 +33,7 @@ import yaml
 from tqdm import tqdm
 
 from cvslam_cli.errors import ConfigError, CvslamError
-from cvslam_cli.geometry.camera import CameraModel, StereoRig
+from cvslam_cli.geometry.camera import CameraModel, StereoRig, rig_calibration
 from cvslam_cli.geometry.projection import pixel_rays
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
 from cvslam_cli.io.atomic import atomic_dir, write_text_atomic
@@ -44,7 +44,7 @@ from cvslam_cli.io.npz import NpzWriter, save_npz
 from cvslam_cli.io.run_layout import SimLayout
 from cvslam_cli.io.trajectory import write_tum
 from cvslam_cli.parallel import STATE, ordered_map
-from cvslam_cli.records.features import FeatureSetBuilder, rig_calibration
+from cvslam_cli.records.features import FeatureSetBuilder
 from cvslam_cli.records.poses import PoseTable
 from cvslam_cli.sim.imu import ImuData, simulate_imu
 from cvslam_cli.sim.landmarks import LandmarkWorld, make_world, observe_frame

@@ -169,9 +169,9 @@ def test_real_data_matches_are_epipolar_and_plausible(
     """Real logs through import + extract: matches lie on their epipolar lines and their
     depths fit the scene (EuRoC: a room; KITTI: a street). KITTI's rectification leaves
     ~0.6 px of vertical scatter even for plain SIFT, hence its lower fraction under 1 px."""
+    from cvslam_cli.geometry.camera import stereo_rig
     from cvslam_cli.io.importers.euroc import import_euroc
     from cvslam_cli.io.importers.kitti import import_kitti
-    from cvslam_cli.records.features import stereo_rig
     from tests.features.reference_matcher import epipolar_residual_px
 
     log = tmp_path / f"{dataset}.mcap"
