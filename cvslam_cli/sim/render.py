@@ -43,8 +43,9 @@ def photometric(
     rng: np.random.Generator,
 ) -> NDArray[np.uint8]:
     """Recorded 8-bit image: 255 * (gain * radiance + offset) + N(0, noise_sigma) grey levels,
-    rounded and clipped. The noise comes from OpenCV's generator (3x faster than numpy's for
-    a full image), seeded from `rng` so the result is still determined by it."""
+    rounded and clipped. The noise comes from OpenCV's generator (faster than numpy's for a
+    full image: BENCHMARKS.md, "Figures from docstrings"), seeded from `rng` so the
+    result is still determined by it."""
     img = radiance * np.float32(255.0 * gain) + np.float32(255.0 * offset)
     if noise_sigma > 0:
         noise = np.empty(radiance.shape, np.float32)
