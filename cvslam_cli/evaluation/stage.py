@@ -57,6 +57,7 @@ from cvslam_cli.io.run_layout import (
     RunLayout,
 )
 from cvslam_cli.io.rundir import RunDir, input_record
+from cvslam_cli.io.textfiles import data_lines, read_text
 from cvslam_cli.io.trajectory import read_kitti, read_tum
 from cvslam_cli.records.poses import PoseTable
 
@@ -107,11 +108,8 @@ def _fuse_runs(layout: RunLayout) -> list[FuseFolder]:
 
 def _read_trajectory(path: Path) -> PoseTable:
     """TUM (8 numbers per line) or KITTI (12) by content."""
-    first = next(
-        (ln.split() for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()
-         and not ln.lstrip().startswith("#")),
-        [],
-    )  # fmt: skip
+    lines = data_lines(read_text(path, "a trajectory (TUM or KITTI pose file)"))
+    first = next((line.split() for _, line in lines), [])
     if len(first) == 12:
         return read_kitti(path)
     return read_tum(path)

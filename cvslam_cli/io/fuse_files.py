@@ -26,6 +26,7 @@ from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, vehicle_names
 from cvslam_cli.io.npz import save_npz
+from cvslam_cli.io.textfiles import read_text
 from cvslam_cli.records.arrays import F64, I32, I64, check_shape
 from cvslam_cli.records.landmarks import UNKNOWN_TRUE_ID, LandmarkMap
 from cvslam_cli.records.poses import PoseTable
@@ -96,12 +97,7 @@ def read_map_csv(path: Path) -> LandmarkMap:
     is free). The simulator ids come from a `true_id` column when the file has one, else
     they are unknown (-1). `CvslamError` naming the file, and the column and line, for
     anything unusable."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CvslamError(f"{path}: map file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CvslamError(f"{path}: cannot be read as a map CSV ({exc})") from None
+    text = read_text(path, "a landmark map CSV (map.csv)")
     reader = csv.reader(io.StringIO(text))
     rows = [(reader.line_num, r) for r in reader if r]  # (line number, fields), blanks skipped
     if not rows:

@@ -171,7 +171,7 @@ def test_map_csv_errors_are_one_line_naming_the_file(tmp_path, edit, expected):
 
 
 def test_map_csv_missing_file(tmp_path):
-    with pytest.raises(CvslamError, match=r"map\.csv: map file not found"):
+    with pytest.raises(CvslamError, match=r"map\.csv: not found, expected a landmark map CSV"):
         read_map_csv(tmp_path / "map.csv")
 
 

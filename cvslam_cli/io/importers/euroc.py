@@ -35,17 +35,19 @@ from cvslam_cli.io.importers.common import (
     StereoFiles,
     check_rig,
     check_vehicle_name,
-    data_lines,
-    first_non_unit,
     read_stamped_csv,
-    read_text,
-    read_tum,
-    read_yaml_mapping,
     require_dir,
     require_file,
     rig_metadata,
     write_plan,
 )
+from cvslam_cli.io.textfiles import (
+    check_stamps_increasing,
+    data_lines,
+    read_text,
+    read_yaml_mapping,
+)
+from cvslam_cli.io.trajectory import first_non_unit, read_tum
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.poses import PoseTable
 
@@ -154,7 +156,7 @@ def read_T_BS(data: dict[str, Any], path: Path) -> F64:
 
 def read_camera_yaml(path: Path, frame_id: str) -> CameraModel:
     """A EuRoC camera `sensor.yaml` -> unrectified CameraModel (R = I, P = [K | 0])."""
-    data = read_yaml_mapping(path, "a EuRoC camera sensor.yaml")
+    data = read_yaml_mapping(path, "a EuRoC camera sensor.yaml", DatasetError)
     model = data.get("camera_model", "pinhole")
     if model != "pinhole":
         raise DatasetError(f"{path}: camera_model: expected 'pinhole', got {model!r}")
@@ -191,10 +193,10 @@ def read_camera_yaml(path: Path, frame_id: str) -> CameraModel:
 
 def read_image_csv(path: Path, data_dir: Path) -> tuple[I64, list[Path]]:
     """`camN/data.csv` (timestamp [ns], filename) -> (stamps_ns, image paths)."""
-    text = read_text(path, "a EuRoC image list (timestamp [ns], filename per line)")
+    text = read_text(path, "a EuRoC image list (timestamp [ns], filename per line)", DatasetError)
     stamps: list[int] = []
     files: list[Path] = []
-    prev_no = 0
+    lines: list[int] = []
     for k, (no, line) in enumerate(data_lines(text)):
         fields = [f.strip() for f in line.split(",")]
         if k == 0 and not fields[0].isdigit():
@@ -203,15 +205,10 @@ def read_image_csv(path: Path, data_dir: Path) -> tuple[I64, list[Path]]:
             raise DatasetError(
                 f"{path}: line {no}: expected 'timestamp [ns],filename', got {line[:60]!r}"
             )
-        stamp = int(fields[0])
-        if stamps and stamp <= stamps[-1]:
-            raise DatasetError(
-                f"{path}: line {no}: timestamp {stamp} does not increase "
-                f"(previous {stamps[-1]} on line {prev_no})"
-            )
-        stamps.append(stamp)
+        stamps.append(int(fields[0]))
         files.append(data_dir / fields[1])
-        prev_no = no
+        lines.append(no)
+    check_stamps_increasing(path, stamps, lines, DatasetError)
     if not stamps:
         raise DatasetError(f"{path}: no image rows, expected 'timestamp [ns],filename' lines")
     return np.asarray(stamps, dtype=np.int64), files
@@ -264,7 +261,7 @@ def read_imu(imu_dir: Path) -> tuple[ImuTable | None, dict[str, Any], list[str]]
     yaml_path = imu_dir / "sensor.yaml"
     data: dict[str, Any] = {}
     if yaml_path.exists():
-        data = read_yaml_mapping(yaml_path, "a EuRoC IMU sensor.yaml")
+        data = read_yaml_mapping(yaml_path, "a EuRoC IMU sensor.yaml", DatasetError)
         T_BS = read_T_BS(data, yaml_path) if "T_BS" in data else np.eye(4)
         if not np.allclose(T_BS[:3, :3], np.eye(3), atol=1e-9):
             gyro, accel = gyro @ T_BS[:3, :3].T, accel @ T_BS[:3, :3].T
@@ -332,7 +329,11 @@ def read_ground_truth(gt_dir: Path) -> tuple[PoseTable | None, str]:
         world = PoseTable(stamps, values[:, :3], q_wxyz[:, [1, 2, 3, 0]] / norms[:, None])
         source = str(csv_path)
     elif tum_path.exists():
-        world = read_tum(tum_path)
+        world = read_tum(tum_path, DatasetError)
+        if not len(world):
+            raise DatasetError(f"{tum_path}: no poses, expected t x y z qx qy qz qw per line")
+        norms = np.linalg.norm(world.q_xyzw, axis=1)
+        world = PoseTable(world.stamps_ns, world.p_m, world.q_xyzw / norms[:, None])
         source = str(tum_path)
     else:
         return None, ""
