@@ -25,7 +25,7 @@ from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, vehicle_names
-from cvslam_cli.io.npz import save_npz
+from cvslam_cli.io.npz import load_versioned_npz, save_npz
 from cvslam_cli.io.textfiles import read_text
 from cvslam_cli.records.arrays import F64, I32, I64, check_shape
 from cvslam_cli.records.landmarks import UNKNOWN_TRUE_ID, LandmarkMap
@@ -240,27 +240,9 @@ def save_pose_covariances(path: Path, stamps_ns: I64, cov: F64) -> None:
 def load_pose_covariances(path: Path) -> tuple[I64, F64]:
     """(stamps_ns (F,) int64, cov (F, 6, 6) float64) from `save_pose_covariances`'s file.
     `CvslamError` naming the file when it is missing, another format or version, or corrupt."""
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except FileNotFoundError:
-        raise CvslamError(f"{path}: pose covariance file not found") from None
-    except (OSError, ValueError) as exc:
-        raise CvslamError(f"{path}: not a readable pose covariance file ({exc})") from None
-    fmt = str(data.get("format", ""))
-    if fmt != POSE_COV_FORMAT:
-        raise CvslamError(
-            f"{path}: not a cvslam pose covariance file (format {fmt or 'missing'!r})"
-        )
-    try:
-        version = int(data.get("version", -1))
-    except (TypeError, ValueError):
-        version = -1
-    if version != POSE_COV_VERSION:
-        raise CvslamError(
-            f"{path}: pose covariance format version {version}, this cvslam reads version "
-            f"{POSE_COV_VERSION}; run `cvslam fuse --force` again"
-        )
+    data = load_versioned_npz(
+        path, POSE_COV_FORMAT, POSE_COV_VERSION, "pose covariance", "cvslam fuse --force"
+    )
     try:
         stamps, cov = data["stamps_ns"], data["cov"]
         _check_pose_cov(stamps, cov)
