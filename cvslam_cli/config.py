@@ -523,8 +523,7 @@ def load_config(
     """Build the resolved config from config files and `key.path=value` overrides."""
     merged: dict[str, Any] = {}
     sources: list[tuple[str, dict[str, Any]]] = [
-        (str(f), read_yaml_mapping(Path(f), CONFIG_FILE, ConfigError, empty_ok=True))
-        for f in files
+        (str(f), read_yaml_mapping(Path(f), CONFIG_FILE, ConfigError, empty_ok=True)) for f in files
     ]
     for text in overrides:
         parts, value = parse_override(text)

@@ -117,5 +117,5 @@ def test_bad_overrides_name_the_option():
         load_config(overrides=["logs.gap_factor"])
     with pytest.raises(ConfigError, match="unknown key"):
         load_config(overrides=["nothing.here=1"])
-    with pytest.raises(ConfigError, match="file.yaml: not found, expected a config file"):
+    with pytest.raises(ConfigError, match=r"file\.yaml: not found, expected a config file"):
         load_config(["/no/such/file.yaml"])

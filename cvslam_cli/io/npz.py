@@ -71,9 +71,7 @@ def load_versioned_npz(
         with np.load(path, allow_pickle=False) as npz:
             fmt = str(npz["format"]) if "format" in npz.files else ""
             if fmt != format_name:
-                raise CvslamError(
-                    f"{path}: not a cvslam {kind} file (format {fmt or 'missing'!r})"
-                )
+                raise CvslamError(f"{path}: not a cvslam {kind} file (format {fmt or 'missing'!r})")
             try:
                 found = int(npz["version"]) if "version" in npz.files else -1
             except (TypeError, ValueError):

@@ -146,5 +146,5 @@ def test_kitti_stamps_must_match_the_poses(tmp_path):
     write_kitti(path, random_table(3))
     with pytest.raises(CvslamError, match="3 poses"):
         read_kitti(path, np.arange(4, dtype=np.int64))
-    with pytest.raises(CvslamError, match=r"k\.txt: line 3: timestamp 0\.000000005 s does not increase"):
+    with pytest.raises(CvslamError, match=r"k\.txt: line 3: timestamp 0\.000000005 s does not"):
         read_kitti(path, np.array([0, 5, 5], dtype=np.int64))
