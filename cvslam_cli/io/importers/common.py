@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from cvslam_cli import __version__
 from cvslam_cli.errors import CvslamError, DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, nearest_rotation
@@ -212,6 +213,30 @@ def camera_json(cam: CameraModel) -> str:
             "T_body_cam": np.asarray(cam.T_body_cam).tolist(),
         }
     )
+
+
+def import_metadata(
+    dataset: str,
+    source_dir: Path,
+    vehicle: str,
+    conversion: str,
+    body_frame: str,
+    ground_truth: Path | None,
+    **extra: str,
+) -> dict[str, str]:
+    """The "cvslam.import" metadata record: where the log came from and how its frames
+    were converted to NED; `extra` entries come before the cvslam version."""
+    return {
+        "dataset": dataset,
+        "source_dir": str(source_dir.resolve()),
+        "vehicle": vehicle,
+        "nav_frame": "NED",
+        "conversion": conversion,
+        "body_frame": body_frame,
+        "ground_truth": "none" if ground_truth is None else str(ground_truth.resolve()),
+        **extra,
+        "cvslam_version": __version__,
+    }
 
 
 def rig_metadata(names: VehicleNames, rig: StereoRig, **extra: str) -> dict[str, str]:

@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from cvslam_cli import __version__
 from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import is_rotation, matrix_to_quat_xyzw, quat_xyzw_to_matrix
@@ -35,6 +34,7 @@ from cvslam_cli.io.importers.common import (
     StereoFiles,
     check_rig,
     check_vehicle_name,
+    import_metadata,
     read_stamped_csv,
     require_dir,
     require_file,
@@ -104,16 +104,14 @@ def plan_euroc(mav0_dir: Path, vehicle: str) -> ImportPlan:
         notes.append("no ground truth (no state_groundtruth_estimate0/data.csv or groundtruth.tum)")
 
     metadata = {
-        "cvslam.import": {
-            "dataset": "euroc",
-            "source_dir": str(mav0_dir.resolve()),
-            "vehicle": vehicle,
-            "nav_frame": "NED",
-            "conversion": CONVERSION,
-            "body_frame": "EuRoC IMU body frame (imu0)",
-            "ground_truth": str(Path(gt_source).resolve()) if gt is not None else "none",
-            "cvslam_version": __version__,
-        },
+        "cvslam.import": import_metadata(
+            "euroc",
+            mav0_dir,
+            vehicle,
+            CONVERSION,
+            "EuRoC IMU body frame (imu0)",
+            Path(gt_source) if gt is not None else None,
+        ),
         "cvslam.rig": rig_metadata(names, rig, imu=json.dumps(imu_meta)),
     }
     return ImportPlan(names, rig, frames, imu, gt, metadata, tuple(notes))

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cvslam_cli import __version__
 from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig, translation_T
 from cvslam_cli.geometry.rotations import invert_T, is_rotation, make_T
@@ -36,6 +35,7 @@ from cvslam_cli.io.importers.common import (
     check_rig,
     check_vehicle_name,
     image_size,
+    import_metadata,
     pose_table_from_T,
     require_dir,
     rig_metadata,
@@ -136,19 +136,17 @@ def plan_kitti(seq_dir: Path, vehicle: str, *, rate_hz: float = 10.0) -> ImportP
         notes.append("no poses.txt: no ground truth")
 
     metadata = {
-        "cvslam.import": {
-            "dataset": "kitti",
-            "source_dir": str(seq_dir.resolve()),
-            "vehicle": vehicle,
-            "nav_frame": "NED",
-            "conversion": CONVERSION,
-            "body_frame": "FRD at cam0 (x forward, y right, z down)",
-            "ground_truth": str(poses_path.resolve()) if gt is not None else "none",
-            "timestamps": (
+        "cvslam.import": import_metadata(
+            "kitti",
+            seq_dir,
+            vehicle,
+            CONVERSION,
+            "FRD at cam0 (x forward, y right, z down)",
+            poses_path if gt is not None else None,
+            timestamps=(
                 str(times_path.resolve()) if times_path.exists() else f"{rate_hz:g} Hz from t = 0"
             ),
-            "cvslam_version": __version__,
-        },
+        ),
         "cvslam.rig": rig_metadata(
             names, rig, P0=json.dumps(P0.tolist()), P1=json.dumps(P1.tolist())
         ),
