@@ -212,7 +212,7 @@ def _metrics(
     time (estimate stamps_ns, NEES) where the estimate has covariances."""
     max_diff = int(cfg.max_time_diff_ms * 1e6)
     a = mtr.ate(truth, e.table, align=cfg.align, max_diff_ns=max_diff)
-    length = mtr.path_length_m(truth.p_m[a.ref_idx])
+    length = mtr.path_length_m(truth.p_nav_m[a.ref_idx])
     row: dict[str, Any] = {
         "run": e.run,
         "estimate": e.label,
@@ -248,7 +248,9 @@ def _metrics(
     row["rpe_drift_pct"] = drift.average_pct
     if e.cov is None:
         return row, None
-    nees = mtr.nees_position(truth.p_m[a.ref_idx], e.table.p_m[a.est_idx], e.cov[a.est_idx, :3, :3])
+    nees = mtr.nees_position(
+        truth.p_nav_m[a.ref_idx], e.table.p_nav_m[a.est_idx], e.cov[a.est_idx, :3, :3]
+    )
     lo, hi = _nees_band(cfg)
     row["nees_mean"] = float(np.mean(nees))
     row["nees_in_band"] = float(np.mean((nees >= lo) & (nees <= hi)))
@@ -301,13 +303,13 @@ def _series(e: _Estimate, t0_ns: int, label: str | None = None) -> figs.Series:
         e.vehicle,
         label or e.label,
         (e.table.stamps_ns - t0_ns) * 1e-9,
-        e.table.p_m,
+        e.table.p_nav_m,
         sigma,
     )
 
 
 def _truth_series(vehicle: str, truth: PoseTable, t0_ns: int) -> figs.Series:
-    return figs.Series(vehicle, "ground truth", (truth.stamps_ns - t0_ns) * 1e-9, truth.p_m)
+    return figs.Series(vehicle, "ground truth", (truth.stamps_ns - t0_ns) * 1e-9, truth.p_nav_m)
 
 
 # (figure, file name, title, caption), in the report's order

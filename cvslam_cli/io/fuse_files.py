@@ -322,14 +322,14 @@ def write_result_mcap(
         for vehicle, table in trajectories.items():
             if not len(table):
                 continue
-            for t, p, q in zip(table.stamps_ns, table.p_m, table.q_xyzw, strict=True):
+            for t, p, q in zip(table.stamps_ns, table.p_nav_m, table.q_nav_body_xyzw, strict=True):
                 w.write_pose(pose_topic(vehicle), int(t), p, q, frame_id)
             w.write_path(
                 path_topic(vehicle),
                 int(table.stamps_ns[-1]),
                 table.stamps_ns,
-                table.p_m,
-                table.q_xyzw,
+                table.p_nav_m,
+                table.q_nav_body_xyzw,
                 frame_id,
             )
         for vehicle, table in dr.items():
@@ -338,8 +338,8 @@ def write_result_mcap(
                     deadreckoning_path_topic(vehicle),
                     int(table.stamps_ns[-1]),
                     table.stamps_ns,
-                    table.p_m,
-                    table.q_xyzw,
+                    table.p_nav_m,
+                    table.q_nav_body_xyzw,
                     frame_id,
                 )
         w.write_point_cloud(MAP_TOPIC, map_stamp, cloud, frame_id)

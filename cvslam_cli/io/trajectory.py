@@ -39,7 +39,7 @@ def write_tum(path: Path, table: PoseTable, *, header: str = "") -> None:
     """Write `table` as a TUM file (temporary name, renamed when complete)."""
     lines = [f"# {line}" for line in header.splitlines()] if header else []
     lines.append("# timestamp_s x y z qx qy qz qw")
-    for t, p, q in zip(table.stamps_ns, table.p_m, table.q_xyzw, strict=True):
+    for t, p, q in zip(table.stamps_ns, table.p_nav_m, table.q_nav_body_xyzw, strict=True):
         lines.append(ns_to_seconds_text(int(t)) + " " + " ".join(f"{v:.9f}" for v in (*p, *q)))
     write_text_atomic(path, "\n".join(lines) + "\n")
 
@@ -98,8 +98,8 @@ def write_kitti(path: Path, table: PoseTable) -> None:
     `T_world_body` (12 numbers, shortest text that reads back to the same float). The
     format has no stamps: keep them elsewhere (the TUM file) and give them to `read_kitti`.
     Temporary name, renamed when complete."""
-    R = quat_xyzw_to_matrix(np.asarray(table.q_xyzw, dtype=np.float64).reshape(-1, 4))
-    T = np.concatenate([R, np.asarray(table.p_m, dtype=np.float64).reshape(-1, 3, 1)], axis=2)
+    R = quat_xyzw_to_matrix(np.asarray(table.q_nav_body_xyzw, dtype=np.float64).reshape(-1, 4))
+    T = np.concatenate([R, np.asarray(table.p_nav_m, dtype=np.float64).reshape(-1, 3, 1)], axis=2)
     lines = [" ".join(repr(float(v)) for v in m.reshape(12)) for m in T]
     write_text_atomic(path, "".join(line + "\n" for line in lines))
 

@@ -242,7 +242,8 @@ def _ground(
     """The ground fitted to the mapped landmarks, below the cameras' positions."""
     camera_positions = np.vstack(
         [
-            tables[v].p_m + quat_xyzw_to_matrix(tables[v].q_xyzw) @ cams[v].T_body_cam[:3, 3]
+            tables[v].p_nav_m
+            + quat_xyzw_to_matrix(tables[v].q_nav_body_xyzw) @ cams[v].T_body_cam[:3, 3]
             for v in cams
         ]
     )
@@ -269,7 +270,7 @@ def _frames(
     for v, cam in cams.items():
         at = frame_stamps[v][:: cfg.every_nth]
         tab = tables[v]
-        p, R, ok = interpolate_poses(tab.stamps_ns, tab.p_m, tab.q_xyzw, at)
+        p, R, ok = interpolate_poses(tab.stamps_ns, tab.p_nav_m, tab.q_nav_body_xyzw, at)
         T = np.zeros((len(at), 4, 4))
         T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, p, 1.0
         T_nav_cam = T @ cam.T_body_cam
@@ -520,7 +521,7 @@ def run(
 
     truth = _true_ground(run_dir, logs_used)
     with atomic_dir(out.path) as tmp:
-        tracks = {v: tables[v].p_m for v in sorted(comps)}
+        tracks = {v: tables[v].p_nav_m for v in sorted(comps)}
         results = _blended(comps, merged, scene)
         infos = _write_mosaics(MosaicFolder(tmp), results, tracks, table, truth, gsd, mc.overlay)
     union = _union_coverage(results, grid, scene.sub_rois) if merged is not None else 1.0

@@ -318,7 +318,7 @@ def _write_motion_or_truth(
         )
     else:
         gt = s.gt_table
-        lw.write_pose(topics.ground_truth, st, gt.p_m[i], gt.q_xyzw[i], NAV_FRAME_ID)
+        lw.write_pose(topics.ground_truth, st, gt.p_nav_m[i], gt.q_nav_body_xyzw[i], NAV_FRAME_ID)
 
 
 def _write_frame(

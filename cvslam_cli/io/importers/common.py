@@ -338,7 +338,11 @@ def write_plan(
                     gt = plan.ground_truth
                     assert gt is not None
                     log.write_pose(
-                        names.topics.ground_truth, stamp_ns, gt.p_m[i], gt.q_xyzw[i], NAV_FRAME_ID
+                        names.topics.ground_truth,
+                        stamp_ns,
+                        gt.p_nav_m[i],
+                        gt.q_nav_body_xyzw[i],
+                        NAV_FRAME_ID,
                     )
             notes = list(plan.notes)
             if colour:

@@ -324,22 +324,25 @@ def read_ground_truth(gt_dir: Path) -> tuple[PoseTable | None, str]:
                 f"{csv_path}: row {bad + 1}: quaternion q_RS (columns 5-8, "
                 f"w x y z) has norm {norms[bad]:.4f}, expected 1"
             )
-        world = PoseTable(stamps, values[:, :3], q_wxyz[:, [1, 2, 3, 0]] / norms[:, None])
+        p_world_m, q_world_body_xyzw = values[:, :3], q_wxyz[:, [1, 2, 3, 0]] / norms[:, None]
         source = str(csv_path)
     elif tum_path.exists():
+        # a TUM file in the Vicon world frame: the table's nav-named columns hold world
+        # coordinates until `world_to_ned` below
         world = read_tum(tum_path, DatasetError)
         if not len(world):
             raise DatasetError(f"{tum_path}: no poses, expected t x y z qx qy qz qw per line")
-        norms = np.linalg.norm(world.q_xyzw, axis=1)
-        world = PoseTable(world.stamps_ns, world.p_m, world.q_xyzw / norms[:, None])
+        stamps, p_world_m = world.stamps_ns, world.p_nav_m
+        norms = np.linalg.norm(world.q_nav_body_xyzw, axis=1)
+        q_world_body_xyzw = world.q_nav_body_xyzw / norms[:, None]
         source = str(tum_path)
     else:
         return None, ""
-    return world_to_ned(world), source
+    return world_to_ned(stamps, p_world_m, q_world_body_xyzw), source
 
 
-def world_to_ned(world: PoseTable) -> PoseTable:
+def world_to_ned(stamps_ns: I64, p_world_m: F64, q_world_body_xyzw: F64) -> PoseTable:
     """T_world_body (EuRoC Vicon world, z up) -> T_nav_body (NED), see `R_NED_WORLD`."""
-    p_nav = world.p_m @ R_NED_WORLD.T
-    C_nav_body = R_NED_WORLD @ quat_xyzw_to_matrix(world.q_xyzw)
-    return PoseTable(world.stamps_ns, p_nav, matrix_to_quat_xyzw(C_nav_body))
+    p_nav_m = p_world_m @ R_NED_WORLD.T
+    C_nav_body = R_NED_WORLD @ quat_xyzw_to_matrix(q_world_body_xyzw)
+    return PoseTable(stamps_ns, p_nav_m, matrix_to_quat_xyzw(C_nav_body))
