@@ -113,9 +113,9 @@ class FuseSummary:
 
 @dataclass(frozen=True, eq=False)
 class _Motion:
-    imu_stamps: np.ndarray
+    imu_stamps_ns: np.ndarray
     imu: np.ndarray  # (K, 6) accel, gyro
-    odom_stamps: np.ndarray
+    odom_stamps_ns: np.ndarray
     odom: np.ndarray  # (K, 2)
     gt: PoseTable
 
@@ -163,9 +163,9 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
     mc = cfg.motion
     kind = mc.model
     if kind == "auto":
-        if len(motion.imu_stamps):
+        if len(motion.imu_stamps_ns):
             kind = "ins"
-        elif len(motion.odom_stamps):
+        elif len(motion.odom_stamps_ns):
             kind = "odometry"
         elif mc.fallback_constant_velocity:
             kind = "constant_velocity"
@@ -176,7 +176,7 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
                 "=true) to track it with a constant-velocity model"
             )
     if kind == "ins":
-        if not len(motion.imu_stamps):
+        if not len(motion.imu_stamps_ns):
             raise CvslamError(f"vehicle {vehicle}: fuse.motion.model is ins but no IMU messages")
         return InsModel(
             InsNoise(
@@ -188,7 +188,7 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
             biases=mc.imu_biases,
         )
     if kind == "odometry":
-        if not len(motion.odom_stamps):
+        if not len(motion.odom_stamps_ns):
             raise CvslamError(
                 f"vehicle {vehicle}: fuse.motion.model is odometry but no odometry messages"
             )
@@ -273,9 +273,9 @@ def build_inputs(
             z0 = float(gt.p_nav_m[0, 2]) if len(gt) else 0.0
         model = _model(cfg.fuse, v, mo, z0)
         if model.kind == "ins":
-            st, U = mo.imu_stamps, mo.imu
+            st, U = mo.imu_stamps_ns, mo.imu
         elif model.kind == "odometry":
-            st, U = mo.odom_stamps, mo.odom
+            st, U = mo.odom_stamps_ns, mo.odom
         else:
             st, U = np.zeros(0, dtype=np.int64), np.zeros((0, 0))
         first_motion = int(st[0]) if len(st) else int(fs.frame_stamp_ns[0])

@@ -309,7 +309,7 @@ def write_result_mcap(
     last = [int(t.stamps_ns[-1]) for t in (*trajectories.values(), *dr.values()) if len(t)]
     if not last and len(landmarks):  # no pose at all: the map's last observation
         last = [int(landmarks.last_seen_ns.max())]
-    map_stamp = max(last, default=0)
+    map_stamp_ns = max(last, default=0)
     cloud = map_cloud(landmarks)
     info = {
         "frame_id": frame_id,
@@ -342,5 +342,5 @@ def write_result_mcap(
                     table.q_nav_body_xyzw,
                     frame_id,
                 )
-        w.write_point_cloud(MAP_TOPIC, map_stamp, cloud, frame_id)
+        w.write_point_cloud(MAP_TOPIC, map_stamp_ns, cloud, frame_id)
         w.add_metadata(RESULT_METADATA_NAME, info)
