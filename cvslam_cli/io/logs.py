@@ -123,7 +123,8 @@ class LogSet:
         if not ts.observe(stamp_ns) and ts.backwards == 1:
             self.problems.report(
                 "warning",
-                f"{self.names}: {raw.topic}: timestamps go backwards (first at stamp {stamp_ns} ns)",
+                f"{self.names}: {raw.topic}: timestamps go backwards "
+                f"(first at stamp {stamp_ns} ns)",
             )
         if role in _IMAGE_ROLES:
             return self._image(raw, vehicle, role, stamp_ns, ts, rigs)
