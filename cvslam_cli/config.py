@@ -25,6 +25,7 @@ from typing import Any, Literal
 import yaml
 
 from cvslam_cli.errors import ConfigError
+from cvslam_cli.io.textfiles import read_yaml_mapping
 
 IDENTITY_4X4: tuple[float, ...] = tuple(1.0 if i % 5 == 0 else 0.0 for i in range(16))
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
@@ -513,29 +514,7 @@ def _nest(parts: list[str], value: Any) -> dict[str, Any]:
     return out
 
 
-def read_yaml_mapping(path: Path) -> dict[str, Any]:
-    """Read a YAML file that must hold a mapping (or be empty)."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read config file ({exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(
-            f"{path}: not valid YAML{where} ({getattr(exc, 'problem', None) or exc})"
-        ) from None
-    if data is None:
-        return {}
-    if not isinstance(data, Mapping):
-        raise ConfigError(
-            f"{path}: expected a mapping of config keys at the top level, got {type(data).__name__}"
-        )
-    return dict(data)
+CONFIG_FILE = "a config file"
 
 
 def load_config(
@@ -544,7 +523,7 @@ def load_config(
     """Build the resolved config from config files and `key.path=value` overrides."""
     merged: dict[str, Any] = {}
     sources: list[tuple[str, dict[str, Any]]] = [
-        (str(f), read_yaml_mapping(Path(f))) for f in files
+        (str(f), read_yaml_mapping(Path(f), CONFIG_FILE, ConfigError, empty_ok=True)) for f in files
     ]
     for text in overrides:
         parts, value = parse_override(text)

@@ -11,7 +11,12 @@ import numpy as np
 from cvslam_cli.geometry.camera import CameraModel, translation_T
 from cvslam_cli.geometry.rotations import make_T
 from cvslam_cli.io.mcap_writer import LogWriter
-from cvslam_cli.records.features import FeatureSet, FeatureSetBuilder, RigCalibration
+from cvslam_cli.records.features import (
+    DESCRIPTOR_SIZE,
+    FeatureSet,
+    FeatureSetBuilder,
+    RigCalibration,
+)
 
 R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
@@ -154,7 +159,7 @@ def _feature_side(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
         "angle_deg": rng.uniform(0, 360, n),
         "response": rng.uniform(0, 1, n),
         "octave": rng.integers(0, 4, n),
-        "desc": rng.integers(0, 256, (n, 128)),
+        "desc": rng.integers(0, 256, (n, DESCRIPTOR_SIZE)),
     }
 
 

@@ -274,7 +274,7 @@ def test_simulate_command(cvslam, tmp_path):
         "imu, odometry_rate_hz, odometry, camera, ground_truth_at)"
     )
     res = cvslam("simulate", tmp_path / "missing.yaml", "-o", tmp_path / "y")
-    assert res.code == 1 and "missing.yaml: config file not found" in res.err
+    assert res.code == 1 and "missing.yaml: not found, expected a scenario file" in res.err
 
 
 def test_extract_command(cvslam, tmp_path):

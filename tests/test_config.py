@@ -97,7 +97,7 @@ def test_later_sources_override_earlier(tmp_path):
             "c.yaml: logs.vehicle_defaults.rig.left.distortion[1]: expected a number, got 'x'",
         ),
         ("logs: {tf_static_topic: true}\n", "c.yaml: logs.tf_static_topic: expected a string"),
-        ("- just\n- a list\n", "c.yaml: expected a mapping of config keys at the top level"),
+        ("- just\n- a list\n", "c.yaml: expected a YAML mapping (a config file), got list"),
         ("logs: {a: [1, 2\n", "c.yaml: not valid YAML"),
     ],
 )
@@ -117,5 +117,5 @@ def test_bad_overrides_name_the_option():
         load_config(overrides=["logs.gap_factor"])
     with pytest.raises(ConfigError, match="unknown key"):
         load_config(overrides=["nothing.here=1"])
-    with pytest.raises(ConfigError, match="config file not found"):
+    with pytest.raises(ConfigError, match=r"file\.yaml: not found, expected a config file"):
         load_config(["/no/such/file.yaml"])

@@ -113,7 +113,7 @@ class Cooperation:
             vin.obs, frame.z, frame.desc, st.landmarks(), book.desc[book.slot_ids],
             ratio=s.descriptor_ratio, max_descriptor_distance=s.max_descriptor_distance,
             reprojection_px=s.localise_reprojection_px, min_inliers=s.localise_min_inliers,
-            seed=len(run.stamps),
+            seed=len(run.stamps_ns),
         )  # fmt: skip
         if found is None:
             return out

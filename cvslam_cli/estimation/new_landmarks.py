@@ -140,7 +140,8 @@ class NewLandmarks:
         covs = st.landmark_covariances(np.arange(st.n_landmarks))
         # each other vehicle's latest frame: the landmarks it is tracking go last
         latest = np.array(
-            [r.stamps[-1] if r.stamps and r is not run else NEVER for r in runs], dtype=np.int64
+            [r.stamps_ns[-1] if r.stamps_ns and r is not run else NEVER for r in runs],
+            dtype=np.int64,
         )
         order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2), latest)
         evict = order[: max(over, bound // 10)]

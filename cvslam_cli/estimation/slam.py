@@ -297,7 +297,7 @@ class Slam:
             self._diverge(vin.name, t_ns, "non-finite state or covariance")
         pose_cov = pose.cov
         p = pose.p_nav_m
-        run.stamps.append(t_ns)
+        run.stamps_ns.append(t_ns)
         run.x.append(pose.x.copy())
         run.pose_cov.append(pose_cov)
         reason = self.monitor.check(vin.name, out.nis, out.dof, out.visible, len(frame))
@@ -359,20 +359,20 @@ class Slam:
             in_state=in_state,
             true_id=book.true_id[:n].copy(),
         )
-        tracks = {r.vin.name: _track(r.vin, r.stamps, r.x, r.pose_cov) for r in self.runs}
+        tracks = {r.vin.name: _track(r.vin, r.stamps_ns, r.x, r.pose_cov) for r in self.runs}
         return SlamResult(
             tracks, self.timeline, self.events.rows, lm, self.divergence,
             self.updater.gamma.raised_count,
         )  # fmt: skip
 
 
-def _track(vin: VehicleInput, stamps: list[int], xs: list[F64], covs: list[F64]) -> VehicleTrack:
+def _track(vin: VehicleInput, stamps_ns: list[int], xs: list[F64], covs: list[F64]) -> VehicleTrack:
     model = vin.model
     X = np.array(xs).reshape(-1, model.n)
     poses = [model.pose(x) for x in X]
     return VehicleTrack(
         vin.name,
-        np.asarray(stamps, dtype=np.int64),
+        np.asarray(stamps_ns, dtype=np.int64),
         X,
         np.array([q[0] for q in poses]).reshape(-1, 3),
         np.array([q[1] for q in poses]).reshape(-1, 3),

@@ -113,9 +113,9 @@ class FuseSummary:
 
 @dataclass(frozen=True, eq=False)
 class _Motion:
-    imu_stamps: np.ndarray
+    imu_stamps_ns: np.ndarray
     imu: np.ndarray  # (K, 6) accel, gyro
-    odom_stamps: np.ndarray
+    odom_stamps_ns: np.ndarray
     odom: np.ndarray  # (K, 2)
     gt: PoseTable
 
@@ -163,9 +163,9 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
     mc = cfg.motion
     kind = mc.model
     if kind == "auto":
-        if len(motion.imu_stamps):
+        if len(motion.imu_stamps_ns):
             kind = "ins"
-        elif len(motion.odom_stamps):
+        elif len(motion.odom_stamps_ns):
             kind = "odometry"
         elif mc.fallback_constant_velocity:
             kind = "constant_velocity"
@@ -176,7 +176,7 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
                 "=true) to track it with a constant-velocity model"
             )
     if kind == "ins":
-        if not len(motion.imu_stamps):
+        if not len(motion.imu_stamps_ns):
             raise CvslamError(f"vehicle {vehicle}: fuse.motion.model is ins but no IMU messages")
         return InsModel(
             InsNoise(
@@ -188,7 +188,7 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
             biases=mc.imu_biases,
         )
     if kind == "odometry":
-        if not len(motion.odom_stamps):
+        if not len(motion.odom_stamps_ns):
             raise CvslamError(
                 f"vehicle {vehicle}: fuse.motion.model is odometry but no odometry messages"
             )
@@ -216,17 +216,19 @@ def _initial_pose(
         raise CvslamError(f"vehicle {vehicle}: ground truth ends before the first frame")
     if i > 0 and t_min - gt.stamps_ns[i - 1] < gt.stamps_ns[i] - t_min:
         i -= 1  # the nearest sample (before the first frame is fine: the filter predicts)
-    R = quat_xyzw_to_matrix(gt.q_xyzw[i])
+    R = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[i])
     euler = matrix_to_euler_zyx(R)
     j0, j1 = max(i - 1, 0), min(i + 1, len(gt) - 1)
     v_nav = np.zeros(3)
     w_body = np.zeros(3)
     if j1 > j0:
         dt = (gt.stamps_ns[j1] - gt.stamps_ns[j0]) * 1e-9
-        v_nav = (gt.p_m[j1] - gt.p_m[j0]) / dt
-        dR = quat_xyzw_to_matrix(gt.q_xyzw[j0]).T @ quat_xyzw_to_matrix(gt.q_xyzw[j1])
+        v_nav = (gt.p_nav_m[j1] - gt.p_nav_m[j0]) / dt
+        dR = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[j0]).T @ quat_xyzw_to_matrix(
+            gt.q_nav_body_xyzw[j1]
+        )
         w_body = so3_log(dR) / dt
-    return int(gt.stamps_ns[i]), gt.p_m[i].copy(), euler, v_nav, w_body
+    return int(gt.stamps_ns[i]), gt.p_nav_m[i].copy(), euler, v_nav, w_body
 
 
 def initial_pose_source(cfg: FuseConfig, vehicle: str) -> str:
@@ -268,12 +270,12 @@ def build_inputs(
         if given is not None:  # the ground robot's (constant) height, as its other states
             z0 = float(given.position_m[2])
         else:
-            z0 = float(gt.p_m[0, 2]) if len(gt) else 0.0
+            z0 = float(gt.p_nav_m[0, 2]) if len(gt) else 0.0
         model = _model(cfg.fuse, v, mo, z0)
         if model.kind == "ins":
-            st, U = mo.imu_stamps, mo.imu
+            st, U = mo.imu_stamps_ns, mo.imu
         elif model.kind == "odometry":
-            st, U = mo.odom_stamps, mo.odom
+            st, U = mo.odom_stamps_ns, mo.odom
         else:
             st, U = np.zeros(0, dtype=np.int64), np.zeros((0, 0))
         first_motion = int(st[0]) if len(st) else int(fs.frame_stamp_ns[0])
@@ -361,7 +363,7 @@ def _errors(track: VehicleTrack, gt: PoseTable) -> tuple[float, float]:
     if len(track.stamps_ns) == 0:
         return float("nan"), float("nan")
     err = np.linalg.norm(
-        track.p_nav_m - interpolate_positions(gt.stamps_ns, gt.p_m, track.stamps_ns), axis=1
+        track.p_nav_m - interpolate_positions(gt.stamps_ns, gt.p_nav_m, track.stamps_ns), axis=1
     )
     ok = np.isfinite(err)
     if not ok.any():

@@ -59,7 +59,7 @@ class Candidates:
 @dataclass(eq=False)
 class VehicleRun:
     """Per-vehicle bookkeeping during a run: `index` (its bit in the landmark book), the time
-    its state was predicted to (`t_ns`), the estimates recorded at its frames (stamps, vehicle
+    its state was predicted to (`t_ns`), the estimates recorded at its frames (`stamps_ns`, vehicle
     states x (n,), pose covariances (6, 6)), when its pose became known (its start, or when
     it was localised; None while unknown) and its last frame's candidates."""
 
@@ -67,7 +67,7 @@ class VehicleRun:
     index: int
     t_ns: int
     localised_ns: int | None
-    stamps: list[int] = field(default_factory=list)
+    stamps_ns: list[int] = field(default_factory=list)
     x: list[F64] = field(default_factory=list)
     pose_cov: list[F64] = field(default_factory=list)
     candidates: Candidates | None = None

@@ -43,7 +43,7 @@ from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
 
 from cvslam_cli.geometry.rotations import interpolate_positions
-from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.arrays import F64, check_increasing
 
 DPI = 120
 COMPONENTS_SIZE_IN = (8.0, 7.5)
@@ -123,8 +123,9 @@ class Series:
         where = f"Series {self.vehicle} {self.label!r}"
         if t.ndim != 1 or len(t) == 0 or p.shape != (len(t), 3):
             raise ValueError(f"{where}: need t_s (K,) and p_m (K, 3), got {t.shape}, {p.shape}")
-        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-            raise ValueError(f"{where}: t_s must be finite and strictly increasing")
+        if not np.all(np.isfinite(t)):
+            raise ValueError(f"{where}: t_s must be finite")
+        check_increasing(f"{where}: t_s", t)
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "p_m", p)
         if self.sigma_m is not None:

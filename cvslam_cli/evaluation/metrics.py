@@ -215,8 +215,8 @@ class _Matched:
 
 def _matched(ref: PoseTable, est: PoseTable, align: AlignKind, max_diff_ns: int) -> _Matched:
     ref_idx, est_idx = associate(ref, est, max_diff_ns)
-    ref_p = np.asarray(ref.p_m, dtype=np.float64)[ref_idx]
-    est_p = np.asarray(est.p_m, dtype=np.float64)[est_idx]
+    ref_p = np.asarray(ref.p_nav_m, dtype=np.float64)[ref_idx]
+    est_p = np.asarray(est.p_nav_m, dtype=np.float64)[est_idx]
     alignment = _alignment(ref_p, est_p, align)
     return _Matched(ref_idx, est_idx, ref_p, alignment.apply(est_p), alignment)
 
@@ -383,8 +383,8 @@ def rpe(
     if unit == "frames" and float(delta) != int(delta):
         raise ValueError(f"delta must be an integer number of frames, got {delta}")
     m = _matched(ref, est, align, max_diff_ns)
-    Q = _se3(m.ref_p, np.asarray(ref.q_xyzw)[m.ref_idx])
-    P = _se3(m.est_p, np.asarray(est.q_xyzw)[m.est_idx], m.alignment)
+    Q = _se3(m.ref_p, np.asarray(ref.q_nav_body_xyzw)[m.ref_idx])
+    P = _se3(m.est_p, np.asarray(est.q_nav_body_xyzw)[m.est_idx], m.alignment)
     source = m.ref_p if pairs_from_reference else m.est_p
     if unit == "frames":
         pairs = pairs_by_index(len(source), int(delta), all_pairs)
@@ -461,7 +461,7 @@ def rpe_per_distance(
     if (deltas_m is None) == (fractions is None):
         raise ValueError("give exactly one of deltas_m and fractions")
     ref_idx, _ = associate(ref, est, max_diff_ns)
-    d_ref = accumulated_distances_m(np.asarray(ref.p_m, dtype=np.float64)[ref_idx])
+    d_ref = accumulated_distances_m(np.asarray(ref.p_nav_m, dtype=np.float64)[ref_idx])
     if fractions is not None:
         deltas = [float(f) * float(d_ref[-1]) for f in fractions]
     else:
@@ -521,7 +521,7 @@ def final_drift(
     m = _matched(ref, est, align, max_diff_ns)
     drift = float(np.linalg.norm(m.est_p[-1] - m.ref_p[-1]))
     a, b = int(m.ref_idx[0]), int(m.ref_idx[-1])
-    length = path_length_m(np.asarray(ref.p_m, dtype=np.float64)[min(a, b) : max(a, b) + 1])
+    length = path_length_m(np.asarray(ref.p_nav_m, dtype=np.float64)[min(a, b) : max(a, b) + 1])
     return drift, (100.0 * drift / length if length > 0 else math.nan)
 
 

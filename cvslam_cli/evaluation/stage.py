@@ -57,6 +57,7 @@ from cvslam_cli.io.run_layout import (
     RunLayout,
 )
 from cvslam_cli.io.rundir import RunDir, input_record
+from cvslam_cli.io.textfiles import data_lines, read_text
 from cvslam_cli.io.trajectory import read_kitti, read_tum
 from cvslam_cli.records.poses import PoseTable
 
@@ -107,11 +108,8 @@ def _fuse_runs(layout: RunLayout) -> list[FuseFolder]:
 
 def _read_trajectory(path: Path) -> PoseTable:
     """TUM (8 numbers per line) or KITTI (12) by content."""
-    first = next(
-        (ln.split() for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()
-         and not ln.lstrip().startswith("#")),
-        [],
-    )  # fmt: skip
+    lines = data_lines(read_text(path, "a trajectory (TUM or KITTI pose file)"))
+    first = next((line.split() for _, line in lines), [])
     if len(first) == 12:
         return read_kitti(path)
     return read_tum(path)
@@ -214,7 +212,7 @@ def _metrics(
     time (estimate stamps_ns, NEES) where the estimate has covariances."""
     max_diff = int(cfg.max_time_diff_ms * 1e6)
     a = mtr.ate(truth, e.table, align=cfg.align, max_diff_ns=max_diff)
-    length = mtr.path_length_m(truth.p_m[a.ref_idx])
+    length = mtr.path_length_m(truth.p_nav_m[a.ref_idx])
     row: dict[str, Any] = {
         "run": e.run,
         "estimate": e.label,
@@ -250,7 +248,9 @@ def _metrics(
     row["rpe_drift_pct"] = drift.average_pct
     if e.cov is None:
         return row, None
-    nees = mtr.nees_position(truth.p_m[a.ref_idx], e.table.p_m[a.est_idx], e.cov[a.est_idx, :3, :3])
+    nees = mtr.nees_position(
+        truth.p_nav_m[a.ref_idx], e.table.p_nav_m[a.est_idx], e.cov[a.est_idx, :3, :3]
+    )
     lo, hi = _nees_band(cfg)
     row["nees_mean"] = float(np.mean(nees))
     row["nees_in_band"] = float(np.mean((nees >= lo) & (nees <= hi)))
@@ -303,13 +303,13 @@ def _series(e: _Estimate, t0_ns: int, label: str | None = None) -> figs.Series:
         e.vehicle,
         label or e.label,
         (e.table.stamps_ns - t0_ns) * 1e-9,
-        e.table.p_m,
+        e.table.p_nav_m,
         sigma,
     )
 
 
 def _truth_series(vehicle: str, truth: PoseTable, t0_ns: int) -> figs.Series:
-    return figs.Series(vehicle, "ground truth", (truth.stamps_ns - t0_ns) * 1e-9, truth.p_m)
+    return figs.Series(vehicle, "ground truth", (truth.stamps_ns - t0_ns) * 1e-9, truth.p_nav_m)
 
 
 # (figure, file name, title, caption), in the report's order
@@ -328,7 +328,7 @@ def _headline_figure(headline: pd.DataFrame, cfg: EvalConfig) -> Iterator[_Figur
 
 
 def _position_figures(
-    by: _Estimates, truth: dict[str, PoseTable], main_run: str | None, t0: int
+    by: _Estimates, truth: dict[str, PoseTable], main_run: str | None, t0_ns: int
 ) -> Iterator[_Figure]:
     for v in sorted(truth):
         est = by.get((main_run, v)) if main_run else None
@@ -337,7 +337,9 @@ def _position_figures(
         dr = by.get((DEADRECKONING, v))
         yield (
             figs.position_components(
-                _truth_series(v, truth[v], t0), _series(est, t0), _series(dr, t0) if dr else None
+                _truth_series(v, truth[v], t0_ns),
+                _series(est, t0_ns),
+                _series(dr, t0_ns) if dr else None,
             ),
             f"position_{v}",
             f"{v}: position over time (paper Fig. 10)",
@@ -347,15 +349,15 @@ def _position_figures(
 
 
 def _map_and_timeline_figures(
-    fuse: FuseFolder, by: _Estimates, truth: dict[str, PoseTable], main_run: str | None, t0: int
+    fuse: FuseFolder, by: _Estimates, truth: dict[str, PoseTable], main_run: str | None, t0_ns: int
 ) -> Iterator[_Figure]:
     """The map from above (with the main run), the landmark uncertainty and the feature
     counts over time from `fuse`'s timeline and events."""
     vehicles = sorted(truth)
     if main_run and fuse.map_csv.exists():
         table = read_map_csv(fuse.map_csv)
-        tracks = [_series(by[(main_run, v)], t0) for v in vehicles if (main_run, v) in by]
-        truths = [_truth_series(v, truth[v], t0) for v in vehicles]
+        tracks = [_series(by[(main_run, v)], t0_ns) for v in vehicles if (main_run, v) in by]
+        truths = [_truth_series(v, truth[v], t0_ns) for v in vehicles]
         yield (
             figs.top_view(tracks, truths, table.p_nav_m[:, :2], list(table.observers)),
             "top_view",
@@ -367,14 +369,14 @@ def _map_and_timeline_figures(
         timeline = pd.read_csv(fuse.timeline)
         events = pd.read_csv(fuse.events)
         yield (
-            figs.landmark_uncertainty(timeline, events, t0),
+            figs.landmark_uncertainty(timeline, events, t0_ns),
             "landmark_uncertainty",
             "Landmark uncertainty over time (paper Fig. 12)",
             "RMS standard deviation of the landmarks updated in each frame; loop closures "
             "(lines) and re-observations of other vehicles' landmarks (type 2, shaded).",
         )
         yield (
-            figs.feature_counts(timeline, t0),
+            figs.feature_counts(timeline, t0_ns),
             "feature_counts",
             "Features per frame by type",
             "Type 1: re-observations of the vehicle's own landmarks; type 2: landmarks mapped "
@@ -382,7 +384,9 @@ def _map_and_timeline_figures(
         )
 
 
-def _comparison_figures(by: _Estimates, truth: dict[str, PoseTable], t0: int) -> Iterator[_Figure]:
+def _comparison_figures(
+    by: _Estimates, truth: dict[str, PoseTable], t0_ns: int
+) -> Iterator[_Figure]:
     """Position errors of runs compared, where both runs of a pair were made."""
     pairs = [
         (FUSE_SINGLE, FUSE, "single vs cooperative (paper Fig. 13/17)", "coop"),
@@ -394,8 +398,8 @@ def _comparison_figures(by: _Estimates, truth: dict[str, PoseTable], t0: int) ->
             if (a, v) in by and (b, v) in by:
                 yield (
                     figs.error_over_time(
-                        _truth_series(v, truth[v], t0),
-                        [_series(e, t0) for e in ests],
+                        _truth_series(v, truth[v], t0_ns),
+                        [_series(e, t0_ns) for e in ests],
                         f"{v}: {what}",
                     ),
                     f"error_{tag}_{v}",
@@ -408,11 +412,11 @@ def _nees_figure(
     nees_of: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]],
     vehicles: list[str],
     main_run: str | None,
-    t0: int,
+    t0_ns: int,
     cfg: EvalConfig,
 ) -> Iterator[_Figure]:
     main_nees = {v: nees_of[(main_run, v)] for v in vehicles if (main_run, v) in nees_of}
-    nees_t = {v: (st - t0) * 1e-9 for v, (st, _) in main_nees.items()}
+    nees_t = {v: (st - t0_ns) * 1e-9 for v, (st, _) in main_nees.items()}
     nees = {v: n for v, (_, n) in main_nees.items()}
     if nees:
         yield (
@@ -463,16 +467,16 @@ def _figures(
     cfg: EvalConfig,
 ) -> list[FigureEntry]:
     """Every figure of the report, each written as soon as it is made (one in memory)."""
-    t0 = min(int(t.stamps_ns[0]) for t in truth.values())
+    t0_ns = min(int(t.stamps_ns[0]) for t in truth.values())
     by = {(e.run, e.vehicle): e for e in estimates}
     main_run = next((r for r in RUN_LABELS if any(k[0] == r for k in by)), None)
     vehicles = sorted(truth)
     made = itertools.chain(
         _headline_figure(headline, cfg),
-        _position_figures(by, truth, main_run, t0),
-        _map_and_timeline_figures(layout.fuse(main_run or FUSE), by, truth, main_run, t0),
-        _comparison_figures(by, truth, t0),
-        _nees_figure(nees_of, vehicles, main_run, t0, cfg),
+        _position_figures(by, truth, main_run, t0_ns),
+        _map_and_timeline_figures(layout.fuse(main_run or FUSE), by, truth, main_run, t0_ns),
+        _comparison_figures(by, truth, t0_ns),
+        _nees_figure(nees_of, vehicles, main_run, t0_ns, cfg),
         _mosaic_figure(layout.mosaic(), vehicles),
     )
     entries: list[FigureEntry] = []

@@ -39,6 +39,7 @@ from cvslam_cli.config import StereoMatchConfig
 from cvslam_cli.features.windows import auto_z_min_m, candidate_pairs, search_windows
 from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.records.arrays import F32, F64, I64, U8, U16, BoolArray
+from cvslam_cli.records.features import DESCRIPTOR_SIZE
 
 MIN_WINDOWS_FOR_TYPICAL_D2 = 8
 """Windows with >= 2 candidates needed to take the typical D2 from them (else random pairs)."""
@@ -97,7 +98,7 @@ def _as_points(uv: NDArray[np.floating], side: str) -> F64:
 def _as_descriptors(desc: np.ndarray, n: int, side: str) -> np.ndarray:
     d = np.asarray(desc)
     if d.size == 0 and n == 0:
-        return np.zeros((0, d.shape[1] if d.ndim == 2 else 128), d.dtype)
+        return np.zeros((0, d.shape[1] if d.ndim == 2 else DESCRIPTOR_SIZE), d.dtype)
     if d.ndim != 2 or d.shape[0] != n:
         raise ValueError(f"{side} descriptors: expected ({n}, D) for {n} keypoints, got {d.shape}")
     return d

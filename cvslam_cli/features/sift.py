@@ -72,8 +72,8 @@ import numpy as np
 
 from cvslam_cli.config import AdaptiveSiftConfig, SiftConfig
 from cvslam_cli.records.arrays import F32, I32, I64, U8
+from cvslam_cli.records.features import DESCRIPTOR_SIZE
 
-DESCRIPTOR_SIZE = 128
 REFERENCE_LAYERS = 3
 """The DoG RMS of `dog_rms` is measured at the spacing k0 = 2^(1/REFERENCE_LAYERS)."""
 GRID_CELLS = 48

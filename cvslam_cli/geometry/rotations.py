@@ -124,6 +124,13 @@ def invert_T(T: F64) -> F64:
     return make_T(R.T, -R.T @ t)
 
 
+def nearest_rotation(R: F64) -> F64:
+    """The rotation matrix closest (Frobenius) to an almost-orthonormal (3, 3) matrix `R`
+    (SVD, with the sign that makes the determinant +1)."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
 def is_rotation(R: F64, tol: float = 1e-6) -> bool:
     R = np.asarray(R, dtype=float)
     return bool(

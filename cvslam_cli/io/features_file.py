@@ -17,11 +17,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.io.npz import save_npz
+from cvslam_cli.io.npz import load_versioned_npz, save_npz
 from cvslam_cli.io.run_layout import RunLayout
 from cvslam_cli.records.features import FORMAT_NAME, FORMAT_VERSION, FeatureSet, RigCalibration
 
 _RIG_FIELDS = ("K", "D", "T_body_cam", "size_px")
+_KIND = ("feature", "cvslam extract --force")  # the file in messages, the command redoing it
 
 
 def save_features(fs: FeatureSet, path: Path, meta: dict[str, Any]) -> None:
@@ -44,22 +45,7 @@ def save_features(fs: FeatureSet, path: Path, meta: dict[str, Any]) -> None:
 
 def load_features(path: Path) -> tuple[FeatureSet, dict[str, Any]]:
     """Read a feature file; `CvslamError` naming the file for anything unusable."""
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except FileNotFoundError:
-        raise CvslamError(f"{path}: feature file not found") from None
-    except (OSError, ValueError) as exc:
-        raise CvslamError(f"{path}: not a readable feature file ({exc})") from None
-    fmt = str(data.get("format", ""))
-    if fmt != FORMAT_NAME:
-        raise CvslamError(f"{path}: not a cvslam feature file (format {fmt or 'missing'!r})")
-    version = int(data.get("version", -1))
-    if version != FORMAT_VERSION:
-        raise CvslamError(
-            f"{path}: feature format version {version}, this cvslam reads "
-            f"version {FORMAT_VERSION}; run `cvslam extract --force` again"
-        )
+    data = load_versioned_npz(path, FORMAT_NAME, FORMAT_VERSION, *_KIND)
     try:
         rig = RigCalibration(
             distortion_model=str(data["rig_distortion_model"]),
@@ -77,18 +63,14 @@ def load_features(path: Path) -> tuple[FeatureSet, dict[str, Any]]:
 
 def load_frame_index(path: Path) -> tuple[str, NDArray[np.int64], dict[str, Any]]:
     """(vehicle, frame_stamp_ns (F,), meta) of a feature file, without reading the features."""
+    data = load_versioned_npz(
+        path, FORMAT_NAME, FORMAT_VERSION, *_KIND, ("vehicle", "frame_stamp_ns", "meta_json")
+    )
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            if str(npz["format"]) != FORMAT_NAME:
-                raise CvslamError(f"{path}: not a cvslam feature file")
-            vehicle = str(npz["vehicle"])
-            stamps = np.asarray(npz["frame_stamp_ns"], dtype=np.int64)
-            meta = json.loads(str(npz["meta_json"]))
-    except FileNotFoundError:
-        raise CvslamError(f"{path}: feature file not found") from None
-    except (OSError, ValueError, KeyError) as exc:
-        raise CvslamError(f"{path}: not a readable feature file ({exc})") from None
-    return vehicle, stamps, meta
+        meta = json.loads(str(data["meta_json"]))
+    except ValueError as exc:
+        raise CvslamError(f"{path}: corrupt feature file ({exc})") from None
+    return str(data["vehicle"]), np.asarray(data["frame_stamp_ns"], dtype=np.int64), meta
 
 
 def feature_frame_index(run_dir: Path) -> tuple[dict[str, NDArray[np.int64]], list[dict[str, Any]]]:

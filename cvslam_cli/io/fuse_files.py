@@ -25,7 +25,8 @@ from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, vehicle_names
-from cvslam_cli.io.npz import save_npz
+from cvslam_cli.io.npz import load_versioned_npz, save_npz
+from cvslam_cli.io.textfiles import read_text
 from cvslam_cli.records.arrays import F64, I32, I64, check_shape
 from cvslam_cli.records.landmarks import UNKNOWN_TRUE_ID, LandmarkMap
 from cvslam_cli.records.poses import PoseTable
@@ -96,12 +97,7 @@ def read_map_csv(path: Path) -> LandmarkMap:
     is free). The simulator ids come from a `true_id` column when the file has one, else
     they are unknown (-1). `CvslamError` naming the file, and the column and line, for
     anything unusable."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CvslamError(f"{path}: map file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CvslamError(f"{path}: cannot be read as a map CSV ({exc})") from None
+    text = read_text(path, "a landmark map CSV (map.csv)")
     reader = csv.reader(io.StringIO(text))
     rows = [(reader.line_num, r) for r in reader if r]  # (line number, fields), blanks skipped
     if not rows:
@@ -244,27 +240,9 @@ def save_pose_covariances(path: Path, stamps_ns: I64, cov: F64) -> None:
 def load_pose_covariances(path: Path) -> tuple[I64, F64]:
     """(stamps_ns (F,) int64, cov (F, 6, 6) float64) from `save_pose_covariances`'s file.
     `CvslamError` naming the file when it is missing, another format or version, or corrupt."""
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except FileNotFoundError:
-        raise CvslamError(f"{path}: pose covariance file not found") from None
-    except (OSError, ValueError) as exc:
-        raise CvslamError(f"{path}: not a readable pose covariance file ({exc})") from None
-    fmt = str(data.get("format", ""))
-    if fmt != POSE_COV_FORMAT:
-        raise CvslamError(
-            f"{path}: not a cvslam pose covariance file (format {fmt or 'missing'!r})"
-        )
-    try:
-        version = int(data.get("version", -1))
-    except (TypeError, ValueError):
-        version = -1
-    if version != POSE_COV_VERSION:
-        raise CvslamError(
-            f"{path}: pose covariance format version {version}, this cvslam reads version "
-            f"{POSE_COV_VERSION}; run `cvslam fuse --force` again"
-        )
+    data = load_versioned_npz(
+        path, POSE_COV_FORMAT, POSE_COV_VERSION, "pose covariance", "cvslam fuse --force"
+    )
     try:
         stamps, cov = data["stamps_ns"], data["cov"]
         _check_pose_cov(stamps, cov)
@@ -331,7 +309,7 @@ def write_result_mcap(
     last = [int(t.stamps_ns[-1]) for t in (*trajectories.values(), *dr.values()) if len(t)]
     if not last and len(landmarks):  # no pose at all: the map's last observation
         last = [int(landmarks.last_seen_ns.max())]
-    map_stamp = max(last, default=0)
+    map_stamp_ns = max(last, default=0)
     cloud = map_cloud(landmarks)
     info = {
         "frame_id": frame_id,
@@ -344,14 +322,14 @@ def write_result_mcap(
         for vehicle, table in trajectories.items():
             if not len(table):
                 continue
-            for t, p, q in zip(table.stamps_ns, table.p_m, table.q_xyzw, strict=True):
+            for t, p, q in zip(table.stamps_ns, table.p_nav_m, table.q_nav_body_xyzw, strict=True):
                 w.write_pose(pose_topic(vehicle), int(t), p, q, frame_id)
             w.write_path(
                 path_topic(vehicle),
                 int(table.stamps_ns[-1]),
                 table.stamps_ns,
-                table.p_m,
-                table.q_xyzw,
+                table.p_nav_m,
+                table.q_nav_body_xyzw,
                 frame_id,
             )
         for vehicle, table in dr.items():
@@ -360,9 +338,9 @@ def write_result_mcap(
                     deadreckoning_path_topic(vehicle),
                     int(table.stamps_ns[-1]),
                     table.stamps_ns,
-                    table.p_m,
-                    table.q_xyzw,
+                    table.p_nav_m,
+                    table.q_nav_body_xyzw,
                     frame_id,
                 )
-        w.write_point_cloud(MAP_TOPIC, map_stamp, cloud, frame_id)
+        w.write_point_cloud(MAP_TOPIC, map_stamp_ns, cloud, frame_id)
         w.add_metadata(RESULT_METADATA_NAME, info)

@@ -119,18 +119,19 @@ class LogSet:
         """The record of one message (None: counted only, or dropped), its stamp observed."""
         vehicle, role = self._topics.role_of[raw.topic]
         ts = self.stats[vehicle].topic(raw.topic, role, raw.schema_name)
-        stamp = stamp_ns_of(raw.msg)
-        if not ts.observe(stamp) and ts.backwards == 1:
+        stamp_ns = stamp_ns_of(raw.msg)
+        if not ts.observe(stamp_ns) and ts.backwards == 1:
             self.problems.report(
                 "warning",
-                f"{self.names}: {raw.topic}: timestamps go backwards (first at stamp {stamp} ns)",
+                f"{self.names}: {raw.topic}: timestamps go backwards "
+                f"(first at stamp {stamp_ns} ns)",
             )
         if role in _IMAGE_ROLES:
-            return self._image(raw, vehicle, role, stamp, ts, rigs)
+            return self._image(raw, vehicle, role, stamp_ns, ts, rigs)
         convert = CONVERTERS.get(role)
         if convert is None:
             return None  # camera_info: counted, no record
-        rec = convert(vehicle, stamp, raw.msg)
+        rec = convert(vehicle, stamp_ns, raw.msg)
         if rec is None:
             ts.dropped_nonfinite += 1
         return rec
@@ -140,7 +141,7 @@ class LogSet:
         raw: RawMessage,
         vehicle: str,
         role: str,
-        stamp: int,
+        stamp_ns: int,
         ts: TopicStats,
         rigs: dict[str, StereoRig | CvslamError],
     ) -> ImageRecord | None:
@@ -163,7 +164,7 @@ class LogSet:
             error = _calibration_error(rigs[vehicle], role, img, f"{self.names}: {raw.topic}")
             if error is not None:
                 self.problems.report("error", str(error))
-        return ImageRecord(stamp, img, enc, str(raw.msg.header.frame_id), raw.topic)
+        return ImageRecord(stamp_ns, img, enc, str(raw.msg.header.frame_id), raw.topic)
 
 
 def _calibration_error(

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
+from cvslam_cli.io.textfiles import read_text
 
 
 def write_png_atomic(path: Path, image: NDArray[np.uint8], mask: NDArray[np.bool_] | None) -> None:
@@ -44,10 +45,10 @@ def write_world_file(path: Path, n_max: float, e_min: float, gsd_m: float) -> No
 
 def read_world_file(path: Path) -> tuple[float, ...]:
     """The six values of a world file; CvslamError naming the file otherwise."""
+    text = read_text(path, "a world file (6 numbers, one per line)")
     try:
-        lines = [ln.strip() for ln in path.read_text(encoding="ascii").splitlines() if ln.strip()]
-        values = tuple(float(x) for x in lines)
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        values = tuple(float(x) for x in text.split())
+    except ValueError as exc:
         raise CvslamError(f"{path}: not a world file ({exc})") from None
     if len(values) != 6:
         raise CvslamError(f"{path}: a world file has 6 numbers, found {len(values)}")

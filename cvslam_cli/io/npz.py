@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import io
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import AtomicFile, AtomicWriter
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -51,3 +52,37 @@ def save_npz(path: Path, arrays: Mapping[str, np.ndarray], *, compress: bool = F
     with NpzWriter(path, compress=compress) as w:
         for name in sorted(arrays):
             w.add(name, arrays[name])
+
+
+def load_versioned_npz(
+    path: Path,
+    format_name: str,
+    version: int,
+    kind: str,
+    redo: str,
+    members: Sequence[str] | None = None,
+) -> dict[str, np.ndarray]:
+    """The arrays of a cvslam .npz file whose `format` and `version` members must be
+    `format_name` and `version` (all members, or only `members`: the others are not read).
+    `CvslamError` naming the file when it is missing, unreadable, of another format or
+    version (then saying to run `redo` again); `kind` ("feature", "pose covariance") names
+    the file in these messages."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            fmt = str(npz["format"]) if "format" in npz.files else ""
+            if fmt != format_name:
+                raise CvslamError(f"{path}: not a cvslam {kind} file (format {fmt or 'missing'!r})")
+            try:
+                found = int(npz["version"]) if "version" in npz.files else -1
+            except (TypeError, ValueError):
+                found = -1
+            if found != version:
+                raise CvslamError(
+                    f"{path}: {kind} format version {found}, this cvslam reads version "
+                    f"{version}; run `{redo}` again"
+                )
+            return {k: npz[k] for k in (npz.files if members is None else members)}
+    except FileNotFoundError:
+        raise CvslamError(f"{path}: {kind} file not found") from None
+    except (OSError, ValueError, KeyError) as exc:
+        raise CvslamError(f"{path}: not a readable {kind} file ({exc})") from None

@@ -30,6 +30,7 @@ from cvslam_cli.config import Config, to_dict
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.run_layout import RunLayout
+from cvslam_cli.io.textfiles import read_yaml_mapping
 
 
 def file_sha256(path: Path) -> str:
@@ -78,13 +79,7 @@ class RunDir:
     def load(self) -> dict[str, Any]:
         if not self.run_file.exists():
             return {}
-        try:
-            data = yaml.safe_load(self.run_file.read_text(encoding="utf-8")) or {}
-        except yaml.YAMLError as exc:
-            raise CvslamError(f"{self.run_file}: not valid YAML ({exc})") from None
-        if not isinstance(data, dict):
-            raise CvslamError(f"{self.run_file}: expected a mapping")
-        return data
+        return read_yaml_mapping(self.run_file, "a cvslam run record (run.yaml)", empty_ok=True)
 
     def plan(
         self,

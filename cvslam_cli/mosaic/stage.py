@@ -242,7 +242,8 @@ def _ground(
     """The ground fitted to the mapped landmarks, below the cameras' positions."""
     camera_positions = np.vstack(
         [
-            tables[v].p_m + quat_xyzw_to_matrix(tables[v].q_xyzw) @ cams[v].T_body_cam[:3, 3]
+            tables[v].p_nav_m
+            + quat_xyzw_to_matrix(tables[v].q_nav_body_xyzw) @ cams[v].T_body_cam[:3, 3]
             for v in cams
         ]
     )
@@ -255,7 +256,7 @@ def _ground(
 
 
 def _frames(
-    frame_stamps: dict[str, np.ndarray],
+    frame_stamps_ns: dict[str, np.ndarray],
     tables: dict[str, PoseTable],
     cams: dict[str, CameraModel],
     ground: GroundModel,
@@ -267,9 +268,9 @@ def _frames(
     limits: dict[str, ViewLimits] = {}
     gsds: list[float] = []
     for v, cam in cams.items():
-        at = frame_stamps[v][:: cfg.every_nth]
+        at = frame_stamps_ns[v][:: cfg.every_nth]
         tab = tables[v]
-        p, R, ok = interpolate_poses(tab.stamps_ns, tab.p_m, tab.q_xyzw, at)
+        p, R, ok = interpolate_poses(tab.stamps_ns, tab.p_nav_m, tab.q_nav_body_xyzw, at)
         T = np.zeros((len(at), 4, 4))
         T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, p, 1.0
         T_nav_cam = T @ cam.T_body_cam
@@ -493,8 +494,8 @@ def run(
     mc = cfg.mosaic
     layout = RunLayout(run_dir)
     rd = RunDir(run_dir)
-    frame_stamps, metas = feature_frame_index(run_dir)
-    vehicles = sorted(frame_stamps)
+    frame_stamps_ns, metas = feature_frame_index(run_dir)
+    vehicles = sorted(frame_stamps_ns)
     logs_used = list(log_paths) or layout.find_logs(metas)
     fuse = layout.fuse(mc.fuse_dir)
     traj_files = _fuse_inputs(fuse, vehicles, mc.source)
@@ -512,7 +513,7 @@ def run(
     tables = _poses(logs, vehicles, mc.source, traj_files)
     cams = {v: logs.rig(v).left for v in vehicles}
     ground = _ground(table, tables, cams, mc, fuse.map_csv)
-    frames, limits, gsds = _frames(frame_stamps, tables, cams, ground, mc)
+    frames, limits, gsds = _frames(frame_stamps_ns, tables, cams, ground, mc)
     grid, gsd = _canvas(frames, gsds, mc, run_dir)
     scene = _Scene(ground, cams, limits, grid, _vehicle_rois(frames, grid, mc))
     comps, merged = _compositors(scene.sub_rois, grid, mc)
@@ -520,7 +521,7 @@ def run(
 
     truth = _true_ground(run_dir, logs_used)
     with atomic_dir(out.path) as tmp:
-        tracks = {v: tables[v].p_m for v in sorted(comps)}
+        tracks = {v: tables[v].p_nav_m for v in sorted(comps)}
         results = _blended(comps, merged, scene)
         infos = _write_mosaics(MosaicFolder(tmp), results, tracks, table, truth, gsd, mc.overlay)
     union = _union_coverage(results, grid, scene.sub_rois) if merged is not None else 1.0

@@ -82,3 +82,22 @@ def check_shape(
     raise ValueError(
         f"{name}: expected {wanted} of shape {expected}, got {arr.dtype} of shape {arr.shape}"
     )
+
+
+def first_not_increasing(values: NDArray, *, strict: bool = True) -> int | None:
+    """Index of the first entry of the 1-D `values` that is not greater than the one before
+    (`strict`) or is less than it (not `strict`), or None when they are in order."""
+    step = np.diff(values)
+    bad = np.flatnonzero(step <= 0 if strict else step < 0)
+    return int(bad[0]) + 1 if bad.size else None
+
+
+def check_increasing(name: str, values: NDArray, *, strict: bool = True) -> None:
+    """ValueError naming `name` and the first entry out of order: the one validator of time
+    order for stamps and sample times (`strict`: every entry later than the one before)."""
+    k = first_not_increasing(values, strict=strict)
+    if k is not None:
+        order = "strictly increasing" if strict else "in time order"
+        raise ValueError(
+            f"{name}: expected {order}, but entry {k} ({values[k]}) comes after {values[k - 1]}"
+        )

@@ -19,7 +19,16 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from cvslam_cli.records.arrays import F32, F64, I32, I64, U8, Dim, check_shape
+from cvslam_cli.records.arrays import (
+    F32,
+    F64,
+    I32,
+    I64,
+    U8,
+    Dim,
+    check_increasing,
+    check_shape,
+)
 
 FORMAT_NAME = "cvslam.features"
 FORMAT_VERSION = 1
@@ -142,8 +151,7 @@ class FeatureSet:
             self.match_left.max() >= dims["NL"] or self.match_right.max() >= dims["NR"]
         ):
             raise ValueError("match indices point past the keypoint arrays")
-        if np.any(np.diff(self.frame_stamp_ns) < 0):
-            raise ValueError("frame stamps are not in time order")
+        check_increasing("frame_stamp_ns", self.frame_stamp_ns, strict=False)
 
 
 def _column_fields() -> dict[str, tuple[str, str]]:

@@ -1,4 +1,6 @@
-"""Pose tables: the trajectories stages exchange (estimates, dead reckoning, ground truth)."""
+"""Pose tables: the trajectories stages exchange (estimates, dead reckoning, ground truth),
+all in the nav frame (NED) by contract: TUM files, fuse outputs and the ground truth of logs
+and of `cvslam eval --gt` files hold `T_nav_body`."""
 
 from __future__ import annotations
 
@@ -9,12 +11,13 @@ from cvslam_cli.records.arrays import F64, I64
 
 @dataclass(frozen=True, eq=False)
 class PoseTable:
-    """Poses `T_frame_body`: `stamps_ns` (N,) increasing, `p_m` (N, 3), `q_xyzw` (N, 4)
-    rotating body coordinates into the table's frame."""
+    """Poses `T_nav_body`: `stamps_ns` (N,) increasing; `p_nav_m` (N, 3) body positions in
+    the nav frame, metres; `q_nav_body_xyzw` (N, 4) unit quaternions (scalar last) of
+    `C_nav_body`, rotating body coordinates into nav."""
 
     stamps_ns: I64
-    p_m: F64
-    q_xyzw: F64
+    p_nav_m: F64
+    q_nav_body_xyzw: F64
 
     def __len__(self) -> int:
         return len(self.stamps_ns)

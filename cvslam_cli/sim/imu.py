@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cvslam_cli.geometry.gravity import G_NAV_M_S2
-from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.arrays import F64, check_increasing
 from cvslam_cli.sim.trajectory import MotionSample, Trajectory
 
 
@@ -83,8 +83,7 @@ def check_times(t_s: F64) -> F64:
         raise ValueError(f"t_s must be a non-empty 1-D array, got shape {t.shape}")
     if not np.all(np.isfinite(t)):
         raise ValueError("t_s must be finite")
-    if t.size > 1 and not np.all(np.diff(t) > 0):
-        raise ValueError("t_s must be strictly increasing")
+    check_increasing("t_s", t)
     return t
 
 

@@ -18,10 +18,10 @@ from cvslam_cli.config import (
     deep_merge,
     opt,
     parse_override,
-    read_yaml_mapping,
     to_dict,
 )
 from cvslam_cli.errors import ConfigError
+from cvslam_cli.io.textfiles import read_yaml_mapping
 from cvslam_cli.sim.imu import ImuNoise
 from cvslam_cli.sim.odometry import OdometryNoise
 from cvslam_cli.sim.terrain import TerrainSpec
@@ -152,7 +152,7 @@ def load_scenario(
     duration_s: float | None = None,
 ) -> Scenario:
     """Read and check a scenario file; `overrides` are `key.path=value` strings."""
-    raw = read_yaml_mapping(path)
+    raw = read_yaml_mapping(path, "a scenario file (YAML)", ConfigError, empty_ok=True)
     build_dataclass(Scenario, raw, "", str(path))  # errors name the file
     for text in overrides:
         parts, value = parse_override(text)

@@ -318,7 +318,7 @@ def _write_motion_or_truth(
         )
     else:
         gt = s.gt_table
-        lw.write_pose(topics.ground_truth, st, gt.p_m[i], gt.q_xyzw[i], NAV_FRAME_ID)
+        lw.write_pose(topics.ground_truth, st, gt.p_nav_m[i], gt.q_nav_body_xyzw[i], NAV_FRAME_ID)
 
 
 def _write_frame(
@@ -394,7 +394,7 @@ def _write_vehicle(
         builder.add_frame(st, left_kp, right_kp, matches)
         return len(matches["landmark_id"])
 
-    n_obs = 0
+    n_observations = 0
     with contextlib.ExitStack() as stack:
         depth_writer = (
             stack.enter_context(NpzWriter(out.true_depth(vehicle)))
@@ -414,7 +414,7 @@ def _write_vehicle(
             _write_log_header(lw, sc, v, int(s.cam_ns[0]))
             for kind, i, st in _messages(s.streams):
                 if kind == "frame":
-                    n_obs += _write_frame(lw, i, st, v, rendered, depth_writer, observe)
+                    n_observations += _write_frame(lw, i, st, v, rendered, depth_writer, observe)
                     bar.update(1)
                 else:
                     _write_motion_or_truth(lw, kind, i, st, v, s)
@@ -436,7 +436,7 @@ def _write_vehicle(
         0 if s.odo is None else len(s.odo.t_s),
         len(s.gt_table),
         s.distance_m,
-        n_obs,
+        n_observations,
     )
 
 

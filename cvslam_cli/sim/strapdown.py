@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.arrays import F64, check_increasing
 
 
 def local_cubic_coefficients(t_s: F64, y: F64) -> F64:
@@ -77,8 +77,7 @@ def _check_series(t_s: F64, gyro: F64, accel: F64) -> tuple[F64, F64, F64]:
         raise ValueError(
             f"gyro and accel must be ({t.size}, 3) like t_s, got {w.shape} and {f.shape}"
         )
-    if not np.all(np.diff(t) > 0):
-        raise ValueError("t_s must be strictly increasing")
+    check_increasing("t_s", t)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(w)) and np.all(np.isfinite(f))):
         raise ValueError("IMU samples must be finite")
     return t, w, f

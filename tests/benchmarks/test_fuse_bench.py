@@ -578,7 +578,7 @@ def _fresh_run(sim: Path, spec: RunSpec) -> RunResult:
     for v in spec.vehicles:
         tr = res.tracks[v]
         err = np.linalg.norm(
-            tr.p_nav_m - interpolate_positions(truth[v].stamps_ns, truth[v].p_m, tr.stamps_ns),
+            tr.p_nav_m - interpolate_positions(truth[v].stamps_ns, truth[v].p_nav_m, tr.stamps_ns),
             axis=1,
         )
         rmse[v] = float(np.sqrt(np.nanmean(err**2)))

@@ -168,7 +168,7 @@ def one_run(seed: int) -> RunResult:
         logs = LogSet([McapLogSource(out / f"{VEHICLE}.mcap")], cfg.logs)
         inputs, truth = stage.build_inputs(cfg, features, logs)
         stamps = inputs[0].features.frame_stamp_ns
-        gt = interpolate_positions(truth[VEHICLE].stamps_ns, truth[VEHICLE].p_m, stamps)
+        gt = interpolate_positions(truth[VEHICLE].stamps_ns, truth[VEHICLE].p_nav_m, stamps)
         for kind in STATE["filters"]:
             res = Slam(inputs, stage.slam_settings(cfg.fuse, kind)).run()
             tr = res.tracks[VEHICLE]

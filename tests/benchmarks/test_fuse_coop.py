@@ -244,7 +244,9 @@ def one_run(job: tuple[str, int]) -> RunResult:
         inputs, truth = _inputs(cfg, _sim(name, seed, cache))
         t0_ns = SIM_EPOCH_NS
         gts = {
-            v.name: interpolate_positions(truth[v.name].stamps_ns, truth[v.name].p_m, _frames(v))
+            v.name: interpolate_positions(
+                truth[v.name].stamps_ns, truth[v.name].p_nav_m, _frames(v)
+            )
             for v in inputs
         }
         t_s = {v.name: (_frames(v) - t0_ns) * 1e-9 for v in inputs}
@@ -600,7 +602,7 @@ def speed_run(spec: SpeedSpec) -> SpeedRow:
     for v in chosen:
         tr = res.tracks[v.name]
         err = tr.p_nav_m - interpolate_positions(
-            truth[v.name].stamps_ns, truth[v.name].p_m, tr.stamps_ns
+            truth[v.name].stamps_ns, truth[v.name].p_nav_m, tr.stamps_ns
         )
         rmse[v.name] = float(np.sqrt(np.nanmean(np.sum(err**2, axis=1))))
     tl = pd.DataFrame(res.timeline)

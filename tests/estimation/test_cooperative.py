@@ -48,7 +48,7 @@ def _errors(run: Path, folder: str, vehicle: str) -> tuple[np.ndarray, np.ndarra
     est = read_tum(run / folder / f"{vehicle}.tum")
     truth = read_tum(run / "truth" / f"{vehicle}.tum")
     return est.stamps_ns, np.linalg.norm(
-        est.p_m - interpolate_positions(truth.stamps_ns, truth.p_m, est.stamps_ns), axis=1
+        est.p_nav_m - interpolate_positions(truth.stamps_ns, truth.p_nav_m, est.stamps_ns), axis=1
     )
 
 

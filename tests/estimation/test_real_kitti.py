@@ -65,14 +65,14 @@ def test_kitti_estimate_follows_ground_truth(kitti_run):
     clip, run = kitti_run
     est = read_tum(run / "fuse" / "car.tum")
     gt = interpolate_positions(
-        _truth(run / "car.mcap").stamps_ns, _truth(run / "car.mcap").p_m, est.stamps_ns
+        _truth(run / "car.mcap").stamps_ns, _truth(run / "car.mcap").p_nav_m, est.stamps_ns
     )
     assert len(est) == 51 and np.all(np.isfinite(gt))
     dist = float(np.sum(np.linalg.norm(np.diff(gt, axis=0), axis=1)))
     figures = {}
     for kind in ("none", "se3", "sim3"):
-        al = umeyama(est.p_m, gt, kind) if kind != "none" else None
-        p = est.p_m if al is None else al.apply(est.p_m)
+        al = umeyama(est.p_nav_m, gt, kind) if kind != "none" else None
+        p = est.p_nav_m if al is None else al.apply(est.p_nav_m)
         e = np.linalg.norm(p - gt, axis=1)
         figures[kind] = (float(np.sqrt(np.mean(e**2))), 100.0 * e[-1] / dist, al)
     print(

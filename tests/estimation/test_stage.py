@@ -130,12 +130,12 @@ def test_initial_poses_from_the_config_replace_the_ground_truth(sim_run, tmp_pat
         truth = read_tum(run / "truth" / f"{v}.tum")
         stamps = load_features(run / "features" / f"{v}.npz")[0].frame_stamp_ns
         i = int(np.searchsorted(truth.stamps_ns, stamps[0]))
-        euler = matrix_to_euler_zyx(quat_xyzw_to_matrix(truth.q_xyzw[i]))
-        vel = (truth.p_m[i + 1] - truth.p_m[i]) / (
+        euler = matrix_to_euler_zyx(quat_xyzw_to_matrix(truth.q_nav_body_xyzw[i]))
+        vel = (truth.p_nav_m[i + 1] - truth.p_nav_m[i]) / (
             (truth.stamps_ns[i + 1] - truth.stamps_ns[i]) * 1e-9
         )
         poses.append(
-            f"{v}: {{position_m: {_yaml_list(truth.p_m[i])}, "
+            f"{v}: {{position_m: {_yaml_list(truth.p_nav_m[i])}, "
             f"euler_rad: {_yaml_list(euler)}, velocity_m_s: {_yaml_list(vel)}}}"
         )
     r = cvslam("fuse", run, *NOISE, "--set", "fuse.initial.source=origin",
@@ -178,7 +178,7 @@ def test_wrong_matches_never_become_landmarks_and_associations_are_right(sim_run
     # dead reckoning from the same start drifts far more than the filter
     tr, dr = res.tracks["uav1"], dead_reckoning_track(inputs[0])
     np.testing.assert_array_equal(tr.stamps_ns, dr.stamps_ns)
-    gt = interpolate_positions(truth["uav1"].stamps_ns, truth["uav1"].p_m, tr.stamps_ns)
+    gt = interpolate_positions(truth["uav1"].stamps_ns, truth["uav1"].p_nav_m, tr.stamps_ns)
     e = np.linalg.norm(tr.p_nav_m - gt, axis=1)
     e_dr = np.linalg.norm(dr.p_nav_m - gt, axis=1)
     assert e[-1] < 0.5 * e_dr[-1] and e.max() < 1.5

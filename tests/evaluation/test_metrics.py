@@ -114,7 +114,7 @@ def test_association_with_jittered_stamps_and_missing_poses():
     keep = np.sort(rng.choice(n, size=250, replace=False))
     jitter = rng.integers(-3_000_000, 3_000_001, size=len(keep))
     est_stamps = ref.stamps_ns[keep] + jitter
-    est = table(ref.p_m[keep], stamps_ns=est_stamps)
+    est = table(ref.p_nav_m[keep], stamps_ns=est_stamps)
     ref_idx, est_idx = associate(ref, est)
     # est (250 poses) is the shorter table: every est pose finds its own ref pose
     np.testing.assert_array_equal(est_idx, np.arange(len(keep)))
@@ -126,7 +126,7 @@ def test_association_with_jittered_stamps_and_missing_poses():
     # a jitter beyond max_diff drops that pose
     far = est_stamps.copy()
     far[10] += 20_000_000
-    _, est_idx2 = associate(ref, table(ref.p_m[keep], stamps_ns=far))
+    _, est_idx2 = associate(ref, table(ref.p_nav_m[keep], stamps_ns=far))
     assert 10 not in est_idx2 and len(est_idx2) == len(keep) - 1
 
 
@@ -173,7 +173,7 @@ def test_association_matches_evo_on_random_stamps():
 def test_ate_pure_translation_offset():
     ref = curvy()
     offset = np.array([0.3, -0.4, 1.2])
-    est = PoseTable(ref.stamps_ns, ref.p_m + offset, ref.q_xyzw)
+    est = PoseTable(ref.stamps_ns, ref.p_nav_m + offset, ref.q_nav_body_xyzw)
     res = ate(ref, est)
     norm = float(np.linalg.norm(offset))
     np.testing.assert_allclose(res.errors_m, norm, rtol=1e-12)
@@ -193,7 +193,9 @@ def test_ate_rpe_and_final_drift_of_a_constant_drift():
     n = 101
     ref = straight(n)  # 1 m per pose along x
     k = np.arange(n)
-    est = PoseTable(ref.stamps_ns, ref.p_m + np.outer(k * 0.01, [0.0, 1.0, 0.0]), ref.q_xyzw)
+    est = PoseTable(
+        ref.stamps_ns, ref.p_nav_m + np.outer(k * 0.01, [0.0, 1.0, 0.0]), ref.q_nav_body_xyzw
+    )
     res = ate(ref, est)
     np.testing.assert_allclose(res.errors_m, 0.01 * k, atol=1e-12)
     assert res.rmse == pytest.approx(0.01 * math.sqrt(np.mean(k**2.0)))
@@ -224,7 +226,7 @@ def test_rotation_only_error():
     theta = 0.05
     ref = straight(51)
     R_est = np.broadcast_to(rz(theta), (51, 3, 3))
-    est = PoseTable(ref.stamps_ns, ref.p_m.copy(), matrix_to_quat_xyzw(np.asarray(R_est)))
+    est = PoseTable(ref.stamps_ns, ref.p_nav_m.copy(), matrix_to_quat_xyzw(np.asarray(R_est)))
     assert ate(ref, est).max == 0.0
     res = rpe(ref, est, 1, all_pairs=True)
     np.testing.assert_allclose(res.errors_m, 2 * math.sin(theta / 2), rtol=1e-9)
@@ -240,8 +242,8 @@ def test_sim3_recovers_scale_rotation_and_translation():
         [3, 1, 2],
     )
     # est = the reference seen through the inverse similarity: ref = s R est + t
-    est_p = (ref.p_m - t_true) @ R_true / s_true
-    est_R = R_true.T @ quat_xyzw_to_matrix(ref.q_xyzw)
+    est_p = (ref.p_nav_m - t_true) @ R_true / s_true
+    est_R = R_true.T @ quat_xyzw_to_matrix(ref.q_nav_body_xyzw)
     est = PoseTable(ref.stamps_ns, est_p, matrix_to_quat_xyzw(est_R))
     sim3 = ate(ref, est, "sim3")
     assert sim3.max < 1e-9
@@ -296,8 +298,8 @@ def test_rpe_matches_evo_on_synthetic_noisy_trajectory():
     ref = curvy(300, seed=5)
     rng = np.random.default_rng(6)
     R_noise = np.stack([rz(a) for a in np.cumsum(rng.normal(0, 0.002, len(ref)))])
-    est_R = quat_xyzw_to_matrix(ref.q_xyzw) @ R_noise
-    est_p = 1.1 * ref.p_m + np.cumsum(rng.normal(0, 0.05, (len(ref), 3)), axis=0)
+    est_R = quat_xyzw_to_matrix(ref.q_nav_body_xyzw) @ R_noise
+    est_p = 1.1 * ref.p_nav_m + np.cumsum(rng.normal(0, 0.05, (len(ref), 3)), axis=0)
     est = PoseTable(ref.stamps_ns, est_p, matrix_to_quat_xyzw(est_R))
     evo_ref, evo_est = evo_path(ref), evo_path(est)
     for kind in ("none", "se3", "sim3"):
@@ -338,8 +340,8 @@ def test_nees_position_closed_form_and_band():
 
 def evo_path(t: PoseTable) -> trajectory.PosePath3D:
     T = np.tile(np.eye(4), (len(t), 1, 1))
-    T[:, :3, :3] = quat_xyzw_to_matrix(t.q_xyzw)
-    T[:, :3, 3] = t.p_m
+    T[:, :3, :3] = quat_xyzw_to_matrix(t.q_nav_body_xyzw)
+    T[:, :3, 3] = t.p_nav_m
     return trajectory.PosePath3D(poses_se3=list(T))
 
 
@@ -404,7 +406,7 @@ def test_kitti_rpe_equals_evo(kitti, kind, delta, unit, all_pairs):
     raw = evo_rpe(kitti["evo_ref"], kitti["evo_est"], delta, unit, all_pairs, kind)
     assert ours.pairs[:, 1].tolist() == raw.delta_ids
     i, j = ours.pairs.T
-    span_m = np.linalg.norm(kitti["ref"].p_m[j] - kitti["ref"].p_m[i], axis=1)
+    span_m = np.linalg.norm(kitti["ref"].p_nav_m[j] - kitti["ref"].p_nav_m[i], axis=1)
     assert np.all(np.abs(ours.errors_m - raw.error) <= 1e-7 + 3e-7 * span_m)
     assert_stats_close(ours, raw.get_all_statistics(), 1e-4)
     # the headline statistics agree to the issue's 1e-6 even from the raw files
@@ -423,10 +425,10 @@ def test_tum_files_written_by_us_read_by_evo(kitti, tmp_path):
     keep = np.flatnonzero(np.arange(n) % 7 != 3)
     jitter = np.random.default_rng(2).integers(-3_000_000, 3_000_001, size=len(keep))
     ref0, est0 = kitti["ref"], kitti["est"]
-    write_tum(tmp_path / "ref.tum", PoseTable(ref_stamps, ref0.p_m, ref0.q_xyzw))
+    write_tum(tmp_path / "ref.tum", PoseTable(ref_stamps, ref0.p_nav_m, ref0.q_nav_body_xyzw))
     write_tum(
         tmp_path / "est.tum",
-        PoseTable(ref_stamps[keep] + jitter, est0.p_m[keep], est0.q_xyzw[keep]),
+        PoseTable(ref_stamps[keep] + jitter, est0.p_nav_m[keep], est0.q_nav_body_xyzw[keep]),
         header="ORB-SLAM2 on KITTI 00",
     )
     ref, est = read_tum(tmp_path / "ref.tum"), read_tum(tmp_path / "est.tum")
@@ -435,8 +437,8 @@ def test_tum_files_written_by_us_read_by_evo(kitti, tmp_path):
     evo_ref, evo_est = sync.associate_trajectories(evo_ref, evo_est, max_diff=0.01)
     ref_idx, est_idx = associate(ref, est)
     np.testing.assert_array_equal(est_idx, np.arange(len(keep)))
-    np.testing.assert_array_equal(ref.p_m[ref_idx], evo_ref.positions_xyz)
-    np.testing.assert_array_equal(est.p_m[est_idx], evo_est.positions_xyz)
+    np.testing.assert_array_equal(ref.p_nav_m[ref_idx], evo_ref.positions_xyz)
+    np.testing.assert_array_equal(est.p_nav_m[est_idx], evo_est.positions_xyz)
     for kind in ("none", "se3", "sim3"):
         res = ate(ref, est, kind)
         assert_stats_close(res, evo_ape(evo_ref, evo_est, kind), 1e-6)
@@ -454,7 +456,7 @@ def test_kitti_drift_figures(kitti):
     drift, the published figure (Mur-Artal & Tardos 2017, table: t_rel 0.70 %); rigid
     alignment does not change it."""
     ref, est = kitti["ref"], kitti["est"]
-    assert path_length_m(ref.p_m) == pytest.approx(3724.2, abs=1.0)
+    assert path_length_m(ref.p_nav_m) == pytest.approx(3724.2, abs=1.0)
     lengths = tuple(100.0 * k for k in range(1, 9))
     summary = rpe_per_distance(ref, est, lengths)
     assert [row.n_pairs for row in summary.rows][::7] == [4458, 3825]
@@ -463,4 +465,4 @@ def test_kitti_drift_figures(kitti):
     aligned = rpe_per_distance(ref, est, lengths, align="se3")
     assert aligned.average_pct == pytest.approx(summary.average_pct, rel=1e-9)
     metres, percent = final_drift(ref, est)
-    assert percent == pytest.approx(100 * metres / path_length_m(ref.p_m))
+    assert percent == pytest.approx(100 * metres / path_length_m(ref.p_nav_m))

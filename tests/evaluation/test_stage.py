@@ -111,7 +111,7 @@ def test_ground_truth_from_files(compared_run, tmp_path, cvslam):
 
     write_tum(
         gt / "late.tum",
-        PoseTable(shifted.stamps_ns + 10**12, shifted.p_m, shifted.q_xyzw),
+        PoseTable(shifted.stamps_ns + 10**12, shifted.p_nav_m, shifted.q_nav_body_xyzw),
     )
     res = cvslam("eval", run, "--gt", f"uav1={gt / 'late.tum'}", "--force")
     assert res.code == 1 and "Traceback" not in res.err
@@ -193,11 +193,11 @@ def test_run_without_ground_truth_stops_before_eval(small_image_run, tmp_path, c
     poses = []  # the initial poses a user would give in the config
     for v in ("uav1", "uav2"):
         t = read_tum(small_image_run / "truth" / f"{v}.tum")
-        vel = (t.p_m[1] - t.p_m[0]) / ((t.stamps_ns[1] - t.stamps_ns[0]) * 1e-9)
-        euler = matrix_to_euler_zyx(quat_xyzw_to_matrix(t.q_xyzw[0]))
+        vel = (t.p_nav_m[1] - t.p_nav_m[0]) / ((t.stamps_ns[1] - t.stamps_ns[0]) * 1e-9)
+        euler = matrix_to_euler_zyx(quat_xyzw_to_matrix(t.q_nav_body_xyzw[0]))
         fmt = lambda a: "[" + ", ".join(f"{x:.9f}" for x in a) + "]"  # noqa: E731
         poses.append(
-            f"{v}: {{position_m: {fmt(t.p_m[0])}, euler_rad: {fmt(euler)}, "
+            f"{v}: {{position_m: {fmt(t.p_nav_m[0])}, euler_rad: {fmt(euler)}, "
             f"velocity_m_s: {fmt(vel)}}}"
         )
     res = cvslam(

@@ -9,6 +9,7 @@ from cvslam_cli.geometry.rotations import (
     make_T,
     matrix_to_euler_zyx,
     matrix_to_quat_xyzw,
+    nearest_rotation,
     quat_xyzw_to_matrix,
     so3_log,
 )
@@ -88,3 +89,13 @@ def test_so3_log_is_axis_times_angle():
         R = Rotation.from_rotvec(axis * angle).as_matrix()
         np.testing.assert_allclose(so3_log(R), axis * angle, atol=1e-9)
     np.testing.assert_array_equal(so3_log(np.eye(3)), np.zeros(3))
+
+
+def test_nearest_rotation_of_a_perturbed_rotation():
+    R = Rotation.from_euler("zyx", [0.3, -0.2, 0.1]).as_matrix()
+    noisy = R + 1e-4 * np.random.default_rng(0).standard_normal((3, 3))
+    back = nearest_rotation(noisy)
+    np.testing.assert_allclose(back @ back.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(back) > 0
+    np.testing.assert_allclose(back, R, atol=1e-3)
+    np.testing.assert_allclose(nearest_rotation(R), R, atol=1e-12)

@@ -171,7 +171,7 @@ def test_map_csv_errors_are_one_line_naming_the_file(tmp_path, edit, expected):
 
 
 def test_map_csv_missing_file(tmp_path):
-    with pytest.raises(CvslamError, match=r"map\.csv: map file not found"):
+    with pytest.raises(CvslamError, match=r"map\.csv: not found, expected a landmark map CSV"):
         read_map_csv(tmp_path / "map.csv")
 
 
@@ -384,18 +384,18 @@ def test_result_mcap_reads_back_with_the_project_reader(tmp_path):
         stamps, pos, q = _pose_arrays([m.msg for m in poses])
         np.testing.assert_array_equal(stamps, table.stamps_ns)
         np.testing.assert_array_equal([m.log_time_ns for m in poses], table.stamps_ns)
-        np.testing.assert_array_equal(pos, table.p_m)
-        np.testing.assert_array_equal(q, table.q_xyzw)
+        np.testing.assert_array_equal(pos, table.p_nav_m)
+        np.testing.assert_array_equal(q, table.q_nav_body_xyzw)
         assert all(m.msg.header.frame_id == "nav" for m in poses)
         (path_msg,) = msgs[path_topic(vehicle)]
         assert path_msg.log_time_ns == table.stamps_ns[-1]
         assert len(path_msg.msg.poses) == len(table)
         stamps, pos, q = _pose_arrays(path_msg.msg.poses)
         np.testing.assert_array_equal(stamps, table.stamps_ns)
-        np.testing.assert_array_equal(pos, table.p_m)
-        np.testing.assert_array_equal(q, table.q_xyzw)
+        np.testing.assert_array_equal(pos, table.p_nav_m)
+        np.testing.assert_array_equal(q, table.q_nav_body_xyzw)
     (dr_msg,) = msgs[deadreckoning_path_topic("uav1")]
-    np.testing.assert_array_equal(_pose_arrays(dr_msg.msg.poses)[1], dr["uav1"].p_m)
+    np.testing.assert_array_equal(_pose_arrays(dr_msg.msg.poses)[1], dr["uav1"].p_nav_m)
     (cloud_msg,) = msgs[MAP_TOPIC]
     last = max(int(t.stamps_ns[-1]) for t in (*trajectories.values(), *dr.values()))
     assert cloud_msg.log_time_ns == last
@@ -412,7 +412,7 @@ def test_result_mcap_opens_with_rosbags(tmp_path):
         conn = by_topic[path_topic("ugv1")]
         _, _, raw = next(iter(reader.messages(connections=[conn])))
         msg = reader.deserialize(raw, conn.msgtype)
-        np.testing.assert_array_equal(_pose_arrays(msg.poses)[1], trajectories["ugv1"].p_m)
+        np.testing.assert_array_equal(_pose_arrays(msg.poses)[1], trajectories["ugv1"].p_nav_m)
         conn = by_topic[MAP_TOPIC]
         _, _, raw = next(iter(reader.messages(connections=[conn])))
         _check_cloud(reader.deserialize(raw, conn.msgtype), landmarks)

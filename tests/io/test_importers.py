@@ -29,7 +29,7 @@ from cvslam_cli.io.importers.euroc import import_euroc
 from cvslam_cli.io.importers.kitti import import_kitti
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
-from cvslam_cli.io.trajectory import seconds_text_to_ns as seconds_to_ns
+from cvslam_cli.io.textfiles import seconds_text_to_ns as seconds_to_ns
 from cvslam_cli.records.log import ImuSample, PoseRecord, StereoFrame
 
 # --------------------------------------------------------------------------- helpers
@@ -558,7 +558,7 @@ EUROC_BAD: dict[str, tuple[Mutation, str]] = {
     "missing cam0 folder": (lambda m: (m / "cam0").rename(m / "camX"), "cam0: not found"),
     "malformed yaml": (
         lambda m: _write(m / "cam0" / "sensor.yaml", "%YAML:1.0\nT_BS: [1, 2\n"),
-        "cam0/sensor.yaml: malformed YAML",
+        "cam0/sensor.yaml: not valid YAML at line",
     ),
     "T_BS with 15 numbers": (
         lambda m: _write(
@@ -583,7 +583,7 @@ EUROC_BAD: dict[str, tuple[Mutation, str]] = {
     ),
     "imu stamps go back": (
         lambda m: _append_line(m / "imu0" / "data.csv", "5" + ",0" * 6),
-        "imu0/data.csv: line 23: timestamp 5 does not increase",
+        "imu0/data.csv: line 23: timestamp 0.000000005 s does not increase",
     ),
     "bad ground truth quaternion": (
         lambda m: _append_line(

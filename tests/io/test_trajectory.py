@@ -7,13 +7,8 @@ import pytest
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.geometry.rotations import quat_xyzw_to_matrix
-from cvslam_cli.io.trajectory import (
-    read_kitti,
-    read_tum,
-    seconds_text_to_ns,
-    write_kitti,
-    write_tum,
-)
+from cvslam_cli.io.textfiles import seconds_text_to_ns
+from cvslam_cli.io.trajectory import read_kitti, read_tum, write_kitti, write_tum
 from cvslam_cli.records.poses import PoseTable
 
 
@@ -32,8 +27,8 @@ def test_tum_round_trip_is_exact_in_stamps_and_to_the_written_decimals(tmp_path)
     back = read_tum(path)
     assert back.stamps_ns.dtype == np.int64
     np.testing.assert_array_equal(back.stamps_ns, table.stamps_ns)
-    np.testing.assert_allclose(back.p_m, table.p_m, rtol=0, atol=5e-10)
-    np.testing.assert_allclose(back.q_xyzw, table.q_xyzw, rtol=0, atol=5e-10)
+    np.testing.assert_allclose(back.p_nav_m, table.p_nav_m, rtol=0, atol=5e-10)
+    np.testing.assert_allclose(back.q_nav_body_xyzw, table.q_nav_body_xyzw, rtol=0, atol=5e-10)
     # writing what was read gives the same bytes: read_tum is the exact inverse
     again = tmp_path / "again.tum"
     write_tum(again, back, header="estimated\ntrajectory")
@@ -48,7 +43,7 @@ def test_tum_negative_and_small_stamps_and_empty_table(tmp_path):
     empty = PoseTable(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)))
     write_tum(tmp_path / "e.tum", empty)
     back = read_tum(tmp_path / "e.tum")
-    assert len(back) == 0 and back.p_m.shape == (0, 3) and back.q_xyzw.shape == (0, 4)
+    assert len(back) == 0 and back.p_nav_m.shape == (0, 3) and back.q_nav_body_xyzw.shape == (0, 4)
 
 
 @pytest.mark.parametrize(
@@ -72,7 +67,7 @@ def test_tum_reader_skips_comments_and_accepts_commas(tmp_path):
     path.write_text("# a comment\n\n1.5, 1 2 3 0 0 0 1\n  # indented comment\n2 4 5 6 0 0 1 0\n")
     table = read_tum(path)
     np.testing.assert_array_equal(table.stamps_ns, [1_500_000_000, 2_000_000_000])
-    np.testing.assert_array_equal(table.p_m, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(table.p_nav_m, [[1, 2, 3], [4, 5, 6]])
 
 
 @pytest.mark.parametrize(
@@ -95,7 +90,7 @@ def test_tum_reader_errors_name_file_and_line(tmp_path, body, expected):
 
 
 def test_tum_missing_file_is_one_line(tmp_path):
-    with pytest.raises(CvslamError, match=r"nowhere\.tum: file not found"):
+    with pytest.raises(CvslamError, match=r"nowhere\.tum: not found, expected a TUM trajectory"):
         read_tum(tmp_path / "nowhere.tum")
 
 
@@ -106,13 +101,13 @@ def test_kitti_round_trip(tmp_path):
     lines = path.read_text().splitlines()
     assert len(lines) == 30 and all(len(line.split()) == 12 for line in lines)
     T0 = np.array(lines[0].split(), dtype=float).reshape(3, 4)
-    np.testing.assert_allclose(T0[:, :3], quat_xyzw_to_matrix(table.q_xyzw[0]), atol=1e-15)
-    np.testing.assert_array_equal(T0[:, 3], table.p_m[0])
+    np.testing.assert_allclose(T0[:, :3], quat_xyzw_to_matrix(table.q_nav_body_xyzw[0]), atol=1e-15)
+    np.testing.assert_array_equal(T0[:, 3], table.p_nav_m[0])
     back = read_kitti(path, table.stamps_ns)
     np.testing.assert_array_equal(back.stamps_ns, table.stamps_ns)
-    np.testing.assert_array_equal(back.p_m, table.p_m)  # shortest repr: exact
+    np.testing.assert_array_equal(back.p_nav_m, table.p_nav_m)  # shortest repr: exact
     # same rotation (q and -q are the same one)
-    dots = np.abs(np.sum(back.q_xyzw * table.q_xyzw, axis=1))
+    dots = np.abs(np.sum(back.q_nav_body_xyzw * table.q_nav_body_xyzw, axis=1))
     np.testing.assert_allclose(dots, 1.0, atol=1e-12)
     default = read_kitti(path)
     np.testing.assert_array_equal(default.stamps_ns, np.arange(30) * 1_000_000_000)
@@ -125,7 +120,7 @@ def test_kitti_reader_reorthonormalises_six_digit_rotations(tmp_path):
     path = tmp_path / "gt.txt"
     path.write_text(" ".join(f"{v:.6e}" for v in np.hstack([R, [[1], [2], [3]]]).ravel()) + "\n")
     back = read_kitti(path)
-    R_back = quat_xyzw_to_matrix(back.q_xyzw[0])
+    R_back = quat_xyzw_to_matrix(back.q_nav_body_xyzw[0])
     np.testing.assert_allclose(R_back, R, atol=1e-5)
 
 
@@ -151,5 +146,5 @@ def test_kitti_stamps_must_match_the_poses(tmp_path):
     write_kitti(path, random_table(3))
     with pytest.raises(CvslamError, match="3 poses"):
         read_kitti(path, np.arange(4, dtype=np.int64))
-    with pytest.raises(CvslamError, match="line 3 does not increase"):
+    with pytest.raises(CvslamError, match=r"k\.txt: line 3: timestamp 0\.000000005 s does not"):
         read_kitti(path, np.array([0, 5, 5], dtype=np.int64))

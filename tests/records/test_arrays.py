@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cvslam_cli.records.arrays import check_shape
+from cvslam_cli.records.arrays import check_increasing, check_shape, first_not_increasing
 
 
 def test_symbols_bind_at_first_use_and_must_agree_after():
@@ -54,3 +54,13 @@ def test_message_says_what_came():
     assert str(err.value) == (
         "rig.K: expected real numbers of shape (2, 3, 3), got float64 of shape (2, 3)"
     )
+
+
+def test_first_not_increasing_strict_and_not():
+    assert first_not_increasing(np.array([1, 2, 3])) is None
+    assert first_not_increasing(np.array([1, 2, 2, 1])) == 2
+    assert first_not_increasing(np.array([1, 2, 2, 1]), strict=False) == 3
+    assert first_not_increasing(np.array([], dtype=np.int64)) is None
+    with pytest.raises(ValueError, match=r"^t_s: expected strictly increasing, but entry 1 "):
+        check_increasing("t_s", np.array([0.0, 0.0]))
+    check_increasing("t_s", np.array([0.0, 0.0]), strict=False)

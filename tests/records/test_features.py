@@ -59,7 +59,7 @@ def test_builder_without_frames_gives_empty_columns_of_the_right_shapes():
             "match_offsets must be non-decreasing from 0",
         ),
         ("match_left", lambda fs: fs.match_left + 12, "match indices point past"),
-        ("frame_stamp_ns", lambda fs: fs.frame_stamp_ns[::-1].copy(), "not in time order"),
+        ("frame_stamp_ns", lambda fs: fs.frame_stamp_ns[::-1].copy(), "expected in time order"),
     ],
 )
 def test_validate_refuses_inconsistent_sets(field, value, expected):

@@ -21,19 +21,23 @@ import json
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 from tqdm import tqdm
 
+from cvslam_cli import __version__
 from cvslam_cli.errors import CvslamError, DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
-from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
+from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, nearest_rotation
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
-from cvslam_cli.io.trajectory import finite_floats, seconds_text_to_ns
+from cvslam_cli.io.textfiles import (
+    check_stamps_increasing,
+    data_lines,
+    finite_floats,
+    read_text,
+)
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.poses import PoseTable
 
@@ -122,54 +126,11 @@ def require_file(path: Path, what: str) -> Path:
     return path
 
 
-def read_text(path: Path, what: str) -> str:
-    require_file(path, what)
-    try:
-        return path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read ({exc.strerror})") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path}: is not a text file, expected {what}") from None
-
-
-def read_yaml_mapping(path: Path, what: str) -> dict[str, Any]:
-    """A YAML mapping; an OpenCV `%YAML:1.0` first line (rejected by PyYAML) is dropped."""
-    text = read_text(path, what)
-    if text.startswith("%YAML:"):
-        text = text.split("\n", 1)[1] if "\n" in text else ""
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" (line {mark.line + 2})" if mark is not None else ""
-        raise DatasetError(f"{path}: malformed YAML{where}, expected {what}") from None
-    if not isinstance(data, dict):
-        raise DatasetError(f"{path}: expected a YAML mapping ({what}), got {type(data).__name__}")
-    return data
-
-
-def _check_increasing(path: Path, stamps: list[int], lines: list[int]) -> None:
-    for k in range(1, len(stamps)):
-        if stamps[k] <= stamps[k - 1]:
-            raise DatasetError(
-                f"{path}: line {lines[k]}: timestamp {stamps[k]} does not "
-                f"increase (previous {stamps[k - 1]})"
-            )
-
-
-def data_lines(text: str) -> Iterator[tuple[int, str]]:
-    """(1-based line number, stripped line) of the non-blank lines not starting with '#'."""
-    for no, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if s and not s.startswith("#"):
-            yield no, s
-
-
 def read_stamped_csv(path: Path, n_values: int, what: str) -> tuple[I64, F64]:
     """EuRoC-style CSV: integer ns timestamp, then at least `n_values` numbers per row
     (extra columns ignored); '#' lines and a non-numeric first header line are skipped.
     Returns (stamps_ns (N,), values (N, n_values)), stamps strictly increasing."""
-    text = read_text(path, what)
+    text = read_text(path, what, DatasetError)
     stamps: list[int] = []
     values: list[list[float]] = []
     lines: list[int] = []
@@ -193,7 +154,7 @@ def read_stamped_csv(path: Path, n_values: int, what: str) -> tuple[I64, F64]:
         lines.append(no)
     if not stamps:
         raise DatasetError(f"{path}: no data rows, expected {what}")
-    _check_increasing(path, stamps, lines)
+    check_stamps_increasing(path, stamps, lines, DatasetError)
     return np.asarray(stamps, dtype=np.int64), np.asarray(values, dtype=float)
 
 
@@ -203,56 +164,6 @@ def _is_number(text: str) -> bool:
     except ValueError:
         return False
     return True
-
-
-def first_non_unit(norms: F64, tol: float = 1e-2) -> int | None:
-    """Index of the first quaternion norm further than `tol` from 1, or None."""
-    bad = np.flatnonzero(np.abs(norms - 1.0) > tol)
-    return int(bad[0]) if bad.size else None
-
-
-def read_tum(path: Path) -> PoseTable:
-    """TUM trajectory file: `t x y z qx qy qz qw` per line (t in seconds, whitespace
-    separated, '#' comments). Poses T_world_body as in the file; stamps rounded to ns."""
-    text = read_text(path, "a TUM trajectory (t x y z qx qy qz qw per line)")
-    stamps: list[int] = []
-    rows: list[list[float]] = []
-    lines: list[int] = []
-    for no, line in data_lines(text):
-        fields = line.replace(",", " ").split()
-        if len(fields) != 8:
-            raise DatasetError(
-                f"{path}: line {no}: expected 8 numbers (t x y z qx qy qz qw), got {len(fields)}"
-            )
-        try:
-            stamps.append(seconds_text_to_ns(fields[0]))
-            rows.append(finite_floats(fields[1:]))
-        except ValueError:
-            raise DatasetError(
-                f"{path}: line {no}: expected 8 finite numbers "
-                f"(t x y z qx qy qz qw), got {line[:60]!r}"
-            ) from None
-        lines.append(no)
-    if not stamps:
-        raise DatasetError(f"{path}: no poses, expected t x y z qx qy qz qw per line")
-    _check_increasing(path, stamps, lines)
-    arr = np.asarray(rows, dtype=float)
-    q = arr[:, 3:7]
-    norms = np.linalg.norm(q, axis=1)
-    bad = first_non_unit(norms)
-    if bad is not None:
-        raise DatasetError(
-            f"{path}: line {lines[bad]}: quaternion norm {norms[bad]:.4f} "
-            "is not 1 (expected qx qy qz qw in columns 5-8)"
-        )
-    return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3], q / norms[:, None])
-
-
-def nearest_rotation(R: F64) -> F64:
-    """The rotation matrix closest (Frobenius) to an almost-orthonormal (3, 3) matrix."""
-    U, _, Vt = np.linalg.svd(R)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def read_mono8(path: Path) -> tuple[np.ndarray, bool]:
@@ -302,6 +213,30 @@ def camera_json(cam: CameraModel) -> str:
             "T_body_cam": np.asarray(cam.T_body_cam).tolist(),
         }
     )
+
+
+def import_metadata(
+    dataset: str,
+    source_dir: Path,
+    vehicle: str,
+    conversion: str,
+    body_frame: str,
+    ground_truth: Path | None,
+    **extra: str,
+) -> dict[str, str]:
+    """The "cvslam.import" metadata record: where the log came from and how its frames
+    were converted to NED; `extra` entries come before the cvslam version."""
+    return {
+        "dataset": dataset,
+        "source_dir": str(source_dir.resolve()),
+        "vehicle": vehicle,
+        "nav_frame": "NED",
+        "conversion": conversion,
+        "body_frame": body_frame,
+        "ground_truth": "none" if ground_truth is None else str(ground_truth.resolve()),
+        **extra,
+        "cvslam_version": __version__,
+    }
 
 
 def rig_metadata(names: VehicleNames, rig: StereoRig, **extra: str) -> dict[str, str]:
@@ -403,7 +338,11 @@ def write_plan(
                     gt = plan.ground_truth
                     assert gt is not None
                     log.write_pose(
-                        names.topics.ground_truth, stamp_ns, gt.p_m[i], gt.q_xyzw[i], NAV_FRAME_ID
+                        names.topics.ground_truth,
+                        stamp_ns,
+                        gt.p_nav_m[i],
+                        gt.q_nav_body_xyzw[i],
+                        NAV_FRAME_ID,
                     )
             notes = list(plan.notes)
             if colour:

@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from cvslam_cli import __version__
 from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
 from cvslam_cli.geometry.rotations import is_rotation, matrix_to_quat_xyzw, quat_xyzw_to_matrix
@@ -35,17 +34,20 @@ from cvslam_cli.io.importers.common import (
     StereoFiles,
     check_rig,
     check_vehicle_name,
-    data_lines,
-    first_non_unit,
+    import_metadata,
     read_stamped_csv,
-    read_text,
-    read_tum,
-    read_yaml_mapping,
     require_dir,
     require_file,
     rig_metadata,
     write_plan,
 )
+from cvslam_cli.io.textfiles import (
+    check_stamps_increasing,
+    data_lines,
+    read_text,
+    read_yaml_mapping,
+)
+from cvslam_cli.io.trajectory import first_non_unit, read_tum
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.poses import PoseTable
 
@@ -102,16 +104,14 @@ def plan_euroc(mav0_dir: Path, vehicle: str) -> ImportPlan:
         notes.append("no ground truth (no state_groundtruth_estimate0/data.csv or groundtruth.tum)")
 
     metadata = {
-        "cvslam.import": {
-            "dataset": "euroc",
-            "source_dir": str(mav0_dir.resolve()),
-            "vehicle": vehicle,
-            "nav_frame": "NED",
-            "conversion": CONVERSION,
-            "body_frame": "EuRoC IMU body frame (imu0)",
-            "ground_truth": str(Path(gt_source).resolve()) if gt is not None else "none",
-            "cvslam_version": __version__,
-        },
+        "cvslam.import": import_metadata(
+            "euroc",
+            mav0_dir,
+            vehicle,
+            CONVERSION,
+            "EuRoC IMU body frame (imu0)",
+            Path(gt_source) if gt is not None else None,
+        ),
         "cvslam.rig": rig_metadata(names, rig, imu=json.dumps(imu_meta)),
     }
     return ImportPlan(names, rig, frames, imu, gt, metadata, tuple(notes))
@@ -154,7 +154,7 @@ def read_T_BS(data: dict[str, Any], path: Path) -> F64:
 
 def read_camera_yaml(path: Path, frame_id: str) -> CameraModel:
     """A EuRoC camera `sensor.yaml` -> unrectified CameraModel (R = I, P = [K | 0])."""
-    data = read_yaml_mapping(path, "a EuRoC camera sensor.yaml")
+    data = read_yaml_mapping(path, "a EuRoC camera sensor.yaml", DatasetError)
     model = data.get("camera_model", "pinhole")
     if model != "pinhole":
         raise DatasetError(f"{path}: camera_model: expected 'pinhole', got {model!r}")
@@ -191,10 +191,10 @@ def read_camera_yaml(path: Path, frame_id: str) -> CameraModel:
 
 def read_image_csv(path: Path, data_dir: Path) -> tuple[I64, list[Path]]:
     """`camN/data.csv` (timestamp [ns], filename) -> (stamps_ns, image paths)."""
-    text = read_text(path, "a EuRoC image list (timestamp [ns], filename per line)")
+    text = read_text(path, "a EuRoC image list (timestamp [ns], filename per line)", DatasetError)
     stamps: list[int] = []
     files: list[Path] = []
-    prev_no = 0
+    lines: list[int] = []
     for k, (no, line) in enumerate(data_lines(text)):
         fields = [f.strip() for f in line.split(",")]
         if k == 0 and not fields[0].isdigit():
@@ -203,15 +203,10 @@ def read_image_csv(path: Path, data_dir: Path) -> tuple[I64, list[Path]]:
             raise DatasetError(
                 f"{path}: line {no}: expected 'timestamp [ns],filename', got {line[:60]!r}"
             )
-        stamp = int(fields[0])
-        if stamps and stamp <= stamps[-1]:
-            raise DatasetError(
-                f"{path}: line {no}: timestamp {stamp} does not increase "
-                f"(previous {stamps[-1]} on line {prev_no})"
-            )
-        stamps.append(stamp)
+        stamps.append(int(fields[0]))
         files.append(data_dir / fields[1])
-        prev_no = no
+        lines.append(no)
+    check_stamps_increasing(path, stamps, lines, DatasetError)
     if not stamps:
         raise DatasetError(f"{path}: no image rows, expected 'timestamp [ns],filename' lines")
     return np.asarray(stamps, dtype=np.int64), files
@@ -264,7 +259,7 @@ def read_imu(imu_dir: Path) -> tuple[ImuTable | None, dict[str, Any], list[str]]
     yaml_path = imu_dir / "sensor.yaml"
     data: dict[str, Any] = {}
     if yaml_path.exists():
-        data = read_yaml_mapping(yaml_path, "a EuRoC IMU sensor.yaml")
+        data = read_yaml_mapping(yaml_path, "a EuRoC IMU sensor.yaml", DatasetError)
         T_BS = read_T_BS(data, yaml_path) if "T_BS" in data else np.eye(4)
         if not np.allclose(T_BS[:3, :3], np.eye(3), atol=1e-9):
             gyro, accel = gyro @ T_BS[:3, :3].T, accel @ T_BS[:3, :3].T
@@ -329,18 +324,25 @@ def read_ground_truth(gt_dir: Path) -> tuple[PoseTable | None, str]:
                 f"{csv_path}: row {bad + 1}: quaternion q_RS (columns 5-8, "
                 f"w x y z) has norm {norms[bad]:.4f}, expected 1"
             )
-        world = PoseTable(stamps, values[:, :3], q_wxyz[:, [1, 2, 3, 0]] / norms[:, None])
+        p_world_m, q_world_body_xyzw = values[:, :3], q_wxyz[:, [1, 2, 3, 0]] / norms[:, None]
         source = str(csv_path)
     elif tum_path.exists():
-        world = read_tum(tum_path)
+        # a TUM file in the Vicon world frame: the table's nav-named columns hold world
+        # coordinates until `world_to_ned` below
+        world = read_tum(tum_path, DatasetError)
+        if not len(world):
+            raise DatasetError(f"{tum_path}: no poses, expected t x y z qx qy qz qw per line")
+        stamps, p_world_m = world.stamps_ns, world.p_nav_m
+        norms = np.linalg.norm(world.q_nav_body_xyzw, axis=1)
+        q_world_body_xyzw = world.q_nav_body_xyzw / norms[:, None]
         source = str(tum_path)
     else:
         return None, ""
-    return world_to_ned(world), source
+    return world_to_ned(stamps, p_world_m, q_world_body_xyzw), source
 
 
-def world_to_ned(world: PoseTable) -> PoseTable:
+def world_to_ned(stamps_ns: I64, p_world_m: F64, q_world_body_xyzw: F64) -> PoseTable:
     """T_world_body (EuRoC Vicon world, z up) -> T_nav_body (NED), see `R_NED_WORLD`."""
-    p_nav = world.p_m @ R_NED_WORLD.T
-    C_nav_body = R_NED_WORLD @ quat_xyzw_to_matrix(world.q_xyzw)
-    return PoseTable(world.stamps_ns, p_nav, matrix_to_quat_xyzw(C_nav_body))
+    p_nav_m = p_world_m @ R_NED_WORLD.T
+    C_nav_body = R_NED_WORLD @ quat_xyzw_to_matrix(q_world_body_xyzw)
+    return PoseTable(stamps_ns, p_nav_m, matrix_to_quat_xyzw(C_nav_body))

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cvslam_cli import __version__
 from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig, translation_T
 from cvslam_cli.geometry.rotations import invert_T, is_rotation, make_T
@@ -35,14 +34,18 @@ from cvslam_cli.io.importers.common import (
     StereoFiles,
     check_rig,
     check_vehicle_name,
-    data_lines,
     image_size,
+    import_metadata,
     pose_table_from_T,
-    read_text,
     require_dir,
     rig_metadata,
-    seconds_text_to_ns,
     write_plan,
+)
+from cvslam_cli.io.textfiles import (
+    check_stamps_increasing,
+    data_lines,
+    read_text,
+    seconds_text_to_ns,
 )
 from cvslam_cli.records.arrays import F64, I64
 
@@ -133,19 +136,17 @@ def plan_kitti(seq_dir: Path, vehicle: str, *, rate_hz: float = 10.0) -> ImportP
         notes.append("no poses.txt: no ground truth")
 
     metadata = {
-        "cvslam.import": {
-            "dataset": "kitti",
-            "source_dir": str(seq_dir.resolve()),
-            "vehicle": vehicle,
-            "nav_frame": "NED",
-            "conversion": CONVERSION,
-            "body_frame": "FRD at cam0 (x forward, y right, z down)",
-            "ground_truth": str(poses_path.resolve()) if gt is not None else "none",
-            "timestamps": (
+        "cvslam.import": import_metadata(
+            "kitti",
+            seq_dir,
+            vehicle,
+            CONVERSION,
+            "FRD at cam0 (x forward, y right, z down)",
+            poses_path if gt is not None else None,
+            timestamps=(
                 str(times_path.resolve()) if times_path.exists() else f"{rate_hz:g} Hz from t = 0"
             ),
-            "cvslam_version": __version__,
-        },
+        ),
         "cvslam.rig": rig_metadata(
             names, rig, P0=json.dumps(P0.tolist()), P1=json.dumps(P1.tolist())
         ),
@@ -185,7 +186,7 @@ def _twelve(path: Path, no: int, text: str, what: str) -> F64:
 
 def read_calib(path: Path) -> tuple[F64, F64]:
     """`calib.txt` -> (P0, P1), each (3, 4). Labelled (`P0: ...`) or unlabelled lines."""
-    text = read_text(path, "KITTI calibration (P0 and P1, 12 numbers each)")
+    text = read_text(path, "KITTI calibration (P0 and P1, 12 numbers each)", DatasetError)
     lines = list(data_lines(text))
     labelled = {}
     for no, line in lines:
@@ -253,18 +254,18 @@ def rig_from_projections(
 
 def read_times(path: Path, n_frames: int) -> I64:
     """`times.txt`: one time in seconds per frame -> (n_frames,) stamps_ns, increasing."""
-    text = read_text(path, "KITTI frame times (seconds, one per line)")
+    text = read_text(path, "KITTI frame times (seconds, one per line)", DatasetError)
     stamps: list[int] = []
+    lines: list[int] = []
     for no, line in data_lines(text):
         try:
-            stamp = seconds_text_to_ns(line)
+            stamps.append(seconds_text_to_ns(line))
         except ValueError:
             raise DatasetError(
                 f"{path}: line {no}: expected a time in seconds, got {line[:60]!r}"
             ) from None
-        if stamps and stamp <= stamps[-1]:
-            raise DatasetError(f"{path}: line {no}: time {line} s does not increase")
-        stamps.append(stamp)
+        lines.append(no)
+    check_stamps_increasing(path, stamps, lines, DatasetError)
     if len(stamps) != n_frames:
         raise DatasetError(f"{path}: {len(stamps)} times, expected {n_frames} (one per frame)")
     return np.asarray(stamps, dtype=np.int64)
@@ -272,7 +273,7 @@ def read_times(path: Path, n_frames: int) -> I64:
 
 def read_poses(path: Path, n_frames: int) -> F64:
     """`poses.txt` -> (n_frames, 4, 4) T_world_cam0."""
-    text = read_text(path, "KITTI poses (12 numbers per frame)")
+    text = read_text(path, "KITTI poses (12 numbers per frame)", DatasetError)
     Ts = []
     for no, line in data_lines(text):
         T = np.eye(4)
