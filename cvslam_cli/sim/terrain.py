@@ -19,8 +19,9 @@ Memory: the texture costs 5 bytes per texel (uint8 + float32 weight): the defaul
 800 m x 800 m at 4 px/m is 3200 x 3200 texels = 50 MiB resident, plus the renderer's
 caches (per-cell coefficients, mip levels) built on first use (their measured size and the
 peak while building: BENCHMARKS.md, "Figures from docstrings"). 4 px/m (0.25 m texels)
-matches the ground sample distance of a 450 px focal length from ~110 m; lower flights see a blurrier (upsampled) ground, higher ones are rendered
-from a downsampled level (see below). Specs above `MAX_TEXELS` are refused.
+matches the ground sample distance of a 450 px focal length from ~110 m; lower flights see
+a blurrier (upsampled) ground, higher ones are rendered from a downsampled level (see
+below). Specs above `MAX_TEXELS` are refused.
 
 Ray casting (`render_terrain_view`)
 ----------------------------------
