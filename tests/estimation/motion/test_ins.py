@@ -1,5 +1,5 @@
-"""INS motion model (eq. 1): Jacobians equal finite differences; integrating the simulator's
-noise-free IMU with it follows the true trajectory (first-order scheme: centimetres)."""
+"""INS mechanisation (eq. 1): Jacobians equal finite differences; bias states extend the
+nine-state model. (Integrating the simulator's noise-free IMU to the truth: test_models.py.)"""
 
 from __future__ import annotations
 
@@ -7,8 +7,6 @@ import numpy as np
 import pytest
 
 from cvslam_cli.estimation.motion.ins import ins_step_terms
-from cvslam_cli.sim.imu import true_imu
-from cvslam_cli.sim.trajectory import waypoint_trajectory
 
 
 def ins_step(x, accel_m_s2, gyro_rad_s, dt):
@@ -41,23 +39,6 @@ def test_jacobians_equal_finite_differences(n):
         fd_g = (ins_step(x, f, w + d, dt)[0] - ins_step(x, f, w - d, dt)[0]) / (2 * h)
         np.testing.assert_allclose(G[:, k], fd_a, atol=1e-8)
         np.testing.assert_allclose(G[:, 3 + k], fd_g, atol=1e-8)
-
-
-def test_noise_free_imu_follows_the_trajectory():
-    traj = waypoint_trajectory(
-        np.array([[0, 0, -80], [100, 20, -85], [150, 120, -80], [40, 160, -75]], float),
-        10.0,
-        kind="uav",
-    )
-    t = np.arange(0.0, 10.0, 0.005)
-    m = traj.sample(t)
-    gyro, acc = true_imu(m)
-    x = np.concatenate([m.p_nav_m[0], m.v_body_m_s[0], m.euler_rad[0]])
-    for k in range(len(t) - 1):
-        x, _, _ = ins_step(x, acc[k], gyro[k], t[k + 1] - t[k])
-    err = np.linalg.norm(x[:3] - m.p_nav_m[-1])
-    assert err < 0.5, err  # first-order Euler steps at 200 Hz over 10 s
-    assert np.allclose(x[6:9], m.euler_rad[-1], atol=5e-3)
 
 
 def test_bias_states_with_zero_bias_match_the_nine_state_model():
