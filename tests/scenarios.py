@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -60,3 +61,58 @@ def small_uav_scenario(tmp_path: Path, **changes: object) -> Path:
     path = tmp_path / "small.yaml"
     path.write_text(yaml.safe_dump(sc))
     return path
+
+
+VEHICLE = "uav1"
+# the Monte Carlo's IMU: 10x the simulator's default white noise, and the filter told so
+MC_IMU_NOISE = {"accel_noise_density": 0.02, "gyro_noise_density": 1.7e-3}
+MC_IMU_NOISE_OVERRIDES = (
+    f"fuse.motion.accel_noise_density={MC_IMU_NOISE['accel_noise_density']}",
+    f"fuse.motion.gyro_noise_density={MC_IMU_NOISE['gyro_noise_density']}",
+)
+
+
+def monte_carlo_uav_scenario(outlier_fraction: float, duration_s: float) -> dict[str, Any]:
+    """The fuse Monte Carlo scenario (the seed is set per run): one UAV at 10 m/s, 100 m above
+    terrain with 20 m of relief, a downward stereo camera like `uav2_paper`'s, landmark mode
+    with `outlier_fraction` wrong matches, a consumer IMU (`MC_IMU_NOISE`)."""
+    return {
+        "name": "fuse_mc",
+        "mode": "landmarks",
+        "duration_s": duration_s,
+        "seed": 0,
+        "world": "terrain",
+        "terrain": {
+            "size_m": [400.0, 400.0],
+            "origin_nav_m": [-200.0, -200.0],
+            "texture_px_per_m": 1.0,
+            "relief_m": 20.0,
+            "relief_scale_m": 100.0,
+            "region_scale_m": 100.0,
+        },
+        "landmarks": {"outlier_fraction": outlier_fraction},
+        "vehicles": {
+            VEHICLE: {
+                "closed": True,
+                "speed_m_s": 10.0,
+                "waypoints_nav_m": [
+                    [0.0, -50.0, -100.0],
+                    [50.0, 0.0, -100.0],
+                    [0.0, 50.0, -100.0],
+                    [-50.0, 0.0, -100.0],
+                ],
+                "camera": {
+                    "mount": "down",
+                    "width": 752,
+                    "height": 480,
+                    "fx": 450.0,
+                    "fy": 450.0,
+                    "cx": 375.5,
+                    "cy": 239.5,
+                    "baseline_m": 1.5,
+                    "rate_hz": 10.0,
+                },
+                "imu": dict(MC_IMU_NOISE),
+            }
+        },
+    }

@@ -19,9 +19,9 @@ class FrameMatches:
     z (M, 4) observations (u_l, v_l, u_r, v_r), undistorted pixels (eq. 19's measurement);
     desc (M, 128) left-image descriptors; p_cam_m (M, 3) triangulated points in the left
     camera frame with covariances cov_cam_m2 (M, 3, 3) (the inverse observation model);
-    true_id (M,) the simulator's landmark ids (-1 unknown); can_start (M,) whether a match's
-    point can start a landmark (finite, in front, depth standard deviation below the
-    configured fraction of the depth)."""
+    true_id (M,) the simulator's landmark ids (-1 unknown); depth_sigma_ratio (M,) the depth
+    standard deviation of each point over its depth; can_start (M,) whether a match's point
+    can start a landmark (finite, in front, depth_sigma_ratio below the configured bound)."""
 
     stamp_ns: int
     index: int
@@ -30,6 +30,7 @@ class FrameMatches:
     p_cam_m: F64
     cov_cam_m2: F64
     true_id: I64
+    depth_sigma_ratio: F64
     can_start: NDArray[np.bool_]
 
     @staticmethod
@@ -40,8 +41,9 @@ class FrameMatches:
         cov_cam = fs.match_cov_cam_m2[sl]
         depth = p_cam[:, 2]
         sigma = np.sqrt(np.maximum(cov_cam[:, 2, 2], 0.0))
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore"):
             can_start = np.isfinite(depth) & (depth > 0) & (sigma < max_depth_sigma_ratio * depth)
+            depth_sigma_ratio = sigma / depth
         return FrameMatches(
             stamp_ns=stamp_ns,
             index=index,
@@ -50,6 +52,7 @@ class FrameMatches:
             p_cam_m=p_cam,
             cov_cam_m2=cov_cam,
             true_id=fs.match_landmark_id[sl],
+            depth_sigma_ratio=depth_sigma_ratio,
             can_start=can_start,
         )
 

@@ -32,7 +32,7 @@ from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import Candidates, VehiclePose, VehicleRun
-from cvslam_cli.records.arrays import I64
+from cvslam_cli.records.arrays import F64, I64
 
 
 class NewLandmarks:
@@ -52,18 +52,22 @@ class NewLandmarks:
         s = self.settings
         return min(s.max_new_per_frame, max(0, s.target_tracked - n_updated))
 
-    def confirm(self, run: VehicleRun, frame: FrameMatches, free: NDArray[np.bool_]) -> I64:
+    def confirm(
+        self, run: VehicleRun, frame: FrameMatches, free: NDArray[np.bool_]
+    ) -> tuple[I64, F64]:
         """Matches of this frame (indices into it) among `free` that re-observe a candidate
-        of the vehicle's previous frame (module docstring)."""
+        of the vehicle's previous frame (module docstring), and their priority for
+        `add` (lower first: the relative depth precision, module docstring)."""
+        none = np.zeros(0, dtype=np.int64), np.zeros(0)
         cand = run.candidates
         idx = np.flatnonzero(free & frame.can_start)
         if cand is None or len(cand.m) == 0 or len(idx) == 0:
-            return np.zeros(0, dtype=np.int64)
+            return none
         vin = run.vin
         pose = VehiclePose.of(self.state, vin)
         ok = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, cand.m)
         if len(ok) == 0:
-            return np.zeros(0, dtype=np.int64)
+            return none
         z, _, H_m = vin.obs.predict(pose.p_nav_m, pose.euler_rad, cand.m[ok])
         R4 = np.eye(4) * self.settings.pixel_sigma_px**2
         S = H_m @ cand.cov[ok] @ np.swapaxes(H_m, 1, 2) + R4
@@ -73,7 +77,10 @@ class NewLandmarks:
             pred, cand.desc[ok], frame.z[idx], frame.desc[idx], s.gate_chi2, s.descriptor_ratio,
             s.max_descriptor_distance,
         )  # fmt: skip
-        return idx[assoc.match_index]
+        rows = idx[assoc.match_index]
+        if s.new_landmark_priority == "current_frame":
+            return rows, frame.depth_sigma_ratio[rows]
+        return rows, cand.depth_sigma_ratio[ok[assoc.pred_index]]
 
     def remember_candidates(
         self, run: VehicleRun, frame: FrameMatches, free: NDArray[np.bool_]
@@ -85,7 +92,9 @@ class NewLandmarks:
         m, cov = vin.obs.landmark_from_camera_point(
             pose.p_nav_m, pose.euler_rad, frame.p_cam_m[idx], frame.cov_cam_m2[idx], pose.cov
         )
-        run.candidates = Candidates(m, cov, frame.desc[idx], frame.z[idx], frame.stamp_ns)
+        run.candidates = Candidates(
+            m, cov, frame.desc[idx], frame.z[idx], frame.depth_sigma_ratio[idx], frame.stamp_ns
+        )
 
     def add(
         self,
@@ -93,16 +102,15 @@ class NewLandmarks:
         runs: list[VehicleRun],
         frame: FrameMatches,
         cand: I64,
+        priority: F64,
         protected: I64,
         want: int,
     ) -> I64:
         """Initialise up to `want` of the matches `cand` (confirmed candidates) as landmarks,
         evicting landmarks (never `protected`) when the state is full; `runs`: every
         vehicle's, in vehicle order. Returns their slots."""
-        depth = frame.p_cam_m[cand, 2]
-        sig = np.sqrt(np.maximum(frame.cov_cam_m2[cand, 2, 2], 0.0))
         size = tuple(run.vin.features.rig.size_px[0])
-        pick = cand[spread_order(frame.z[cand, :2], sig / depth, size)[:want]]
+        pick = cand[spread_order(frame.z[cand, :2], priority, size)[:want]]
         pick = self._make_room(run, runs, protected, pick)
         if len(pick) == 0:
             return np.zeros(0, dtype=np.int64)

@@ -23,6 +23,7 @@ class SlamSettings:
     target_tracked: int = 30
     max_new_per_frame: int = 15
     max_new_depth_sigma_ratio: float = 0.25
+    new_landmark_priority: str = "previous_frame"  # or "current_frame" (new_landmarks.py)
     loop_closure_gap_ns: int = 20_000_000_000
     loop_closure_min_landmarks: int = 3
     event_merge_ns: int = 5_000_000_000

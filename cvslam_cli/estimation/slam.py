@@ -269,10 +269,10 @@ class Slam:
         want = self.mapper.wanted(len(out.updated_slots))
         if not want:  # confirming costs an association: only when wanted
             return
-        confirmed = self.mapper.confirm(run, frame, out.types == TYPE_3)
+        confirmed, priority = self.mapper.confirm(run, frame, out.types == TYPE_3)
         if not len(confirmed):
             return
-        slots = self.mapper.add(run, self.runs, frame, confirmed, out.updated_slots, want)
+        slots = self.mapper.add(run, self.runs, frame, confirmed, priority, out.updated_slots, want)
         if len(slots):
             self.cooperation.joint_initialisation(run, slots, frame.stamp_ns)
         out.type3 = len(slots)

@@ -40,20 +40,23 @@ class Candidates:
     """A vehicle's unmatched stereo points of its last frame (k), which its next frame may
     confirm as new landmarks (type 3) and another vehicle's new landmarks may be jointly
     initialised with: nav positions m (k, 3) with covariances cov (k, 3, 3) from its pose
-    then, descriptors desc (k, 128), the observations z (k, 4) and the frame's stamp."""
+    then, descriptors desc (k, 128), the observations z (k, 4), depth_sigma_ratio (k,) the
+    relative depth standard deviation of each point's triangulation, and the frame's stamp."""
 
     m: F64
     cov: F64
     desc: NDArray[np.uint8]
     z: F64
+    depth_sigma_ratio: F64
     stamp_ns: int
 
     def without(self, rows: I64) -> Candidates:
         keep = np.ones(len(self.m), dtype=bool)
         keep[rows] = False
         return Candidates(
-            self.m[keep], self.cov[keep], self.desc[keep], self.z[keep], self.stamp_ns
-        )
+            self.m[keep], self.cov[keep], self.desc[keep], self.z[keep],
+            self.depth_sigma_ratio[keep], self.stamp_ns,
+        )  # fmt: skip
 
 
 @dataclass(eq=False)

@@ -64,6 +64,7 @@ from cvslam_cli.parallel import STATE, ordered_map
 from cvslam_cli.records.arrays import F64
 from cvslam_cli.sim.scenario import LandmarkMode, load_scenario
 from cvslam_cli.sim.stage import run as simulate
+from tests.scenarios import MC_IMU_NOISE_OVERRIDES, VEHICLE, monte_carlo_uav_scenario
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -76,57 +77,12 @@ DURATION_S = 15.0
 DEFAULT_OUTLIERS = LandmarkMode().outlier_fraction
 HIGH_OUTLIERS = 0.20
 FILTERS = ("ekf", "hinf")
-VEHICLE = "uav1"
-# the filter is told the simulated IMU's white noise (10x the simulator's default)
-IMU_NOISE = {"accel_noise_density": 0.02, "gyro_noise_density": 1.7e-3}
-FUSE_NOISE = (
-    f"fuse.motion.accel_noise_density={IMU_NOISE['accel_noise_density']}",
-    f"fuse.motion.gyro_noise_density={IMU_NOISE['gyro_noise_density']}",
-)
+FUSE_NOISE = MC_IMU_NOISE_OVERRIDES
 
 
 def scenario(outlier_fraction: float, duration_s: float = DURATION_S) -> dict[str, Any]:
     """The Monte Carlo scenario (seed set per run)."""
-    return {
-        "name": "fuse_mc",
-        "mode": "landmarks",
-        "duration_s": duration_s,
-        "seed": 0,
-        "world": "terrain",
-        "terrain": {
-            "size_m": [400.0, 400.0],
-            "origin_nav_m": [-200.0, -200.0],
-            "texture_px_per_m": 1.0,
-            "relief_m": 20.0,
-            "relief_scale_m": 100.0,
-            "region_scale_m": 100.0,
-        },
-        "landmarks": {"outlier_fraction": outlier_fraction},
-        "vehicles": {
-            VEHICLE: {
-                "closed": True,
-                "speed_m_s": 10.0,
-                "waypoints_nav_m": [
-                    [0.0, -50.0, -100.0],
-                    [50.0, 0.0, -100.0],
-                    [0.0, 50.0, -100.0],
-                    [-50.0, 0.0, -100.0],
-                ],
-                "camera": {
-                    "mount": "down",
-                    "width": 752,
-                    "height": 480,
-                    "fx": 450.0,
-                    "fy": 450.0,
-                    "cx": 375.5,
-                    "cy": 239.5,
-                    "baseline_m": 1.5,
-                    "rate_hz": 10.0,
-                },
-                "imu": dict(IMU_NOISE),
-            }
-        },
-    }
+    return monte_carlo_uav_scenario(outlier_fraction, duration_s)
 
 
 # ----------------------------------------------------------------------------- one run
