@@ -29,10 +29,11 @@ summary to `runs/benchmarks/fuse_consistency_summary.csv`.
 Asserted: no run diverges or gives a non-finite state, and vision keeps the error far below
 dead reckoning's. The issue's claim (with outliers injected, NH-infinity's position error is
 lower than the EKF's) is printed with its ratio (and a paired 95 % interval of the per-run
-ratio) and tested on its own at the default NH-infinity settings (gamma 10, c_w = c_v = 1:
-lower than the EKF in 96-98 % of the runs, by 0.2 %; smaller gammas gain more on short runs
-but run away on long missions). NEES is reported, not asserted (see BENCHMARKS.md, "Fuse:
-Monte Carlo consistency").
+ratio) and tested on its own at the default NH-infinity settings (gamma 10, c_w = c_v = 1):
+it held by 0.2 % with the biased map of before issue 15 and no longer does (a strict xfail
+carrying the figures). NEES is reported, not asserted here (`make test` has its own
+Monte Carlo NEES test, tests/estimation/test_consistency.py; see BENCHMARKS.md, "Fuse:
+consistency (issue 15)").
 
 Environment: CVSLAM_MC_RUNS (default 50), CVSLAM_MC_WORKERS (default min(2, CPUs)).
 """
@@ -340,6 +341,13 @@ def test_filters_stay_healthy_and_beat_dead_reckoning(mc: MonteCarlo) -> None:
             assert s.rmse_m < 0.5 * dr.rmse_m, (level, kind, s, dr)
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 15: with the unbiased map NH-infinity at the default gamma 10, c_w = c_v = 1 "
+    "equals the EKF (20 % outliers, 20 runs: RMSE ratio 1.001, per-run 95 % CI 0.998 .. 1.011, "
+    "lower in 45 % of the runs); its earlier 0.2 % gain went with the overconfident map "
+    '(BENCHMARKS.md, "Fuse: consistency (issue 15)")',
+)
 def test_nh_infinity_position_error_below_ekf_with_outliers(mc: MonteCarlo) -> None:
     h, k = mc.summaries["high", "hinf"], mc.summaries["high", "ekf"]
     assert h.rmse_m < k.rmse_m, (
