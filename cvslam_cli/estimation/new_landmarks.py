@@ -6,8 +6,13 @@ next frame confirms (predicted with the new pose, inside its window, passing the
 ratio test): a wrong stereo match (a random pairing) is not seen again, so it never enters
 the map. When fewer than `target_tracked` landmarks were updated, up to `max_new_per_frame`
 confirmed matches (spread over the image, the most precise first) are initialised with the
-inverse observation model, their covariance and cross-covariance from the pose (standard
-SLAM augmentation):
+inverse observation model. "Most precise" is the relative depth standard deviation of the
+candidate in its own (previous) frame (`new_landmark_priority: previous_frame`): the precision
+of a triangulation is computed from its noisy disparity, so ranking by the precision of the
+measurement that initialises the landmark (`current_frame`, the paper's way) picks the points
+whose noise shortened their depth and biases the map (BENCHMARKS.md, "Fuse: consistency
+(issue 15)"); the earlier frame's noise is independent of it. Each new landmark gets its
+covariance and cross-covariance from the pose (standard SLAM augmentation):
 
     m = g(x_v, p_cam),  P_mm = G_x P_vv G_x^T + G_c C_cam G_c^T,  P_mx = G_x P_v.
 
