@@ -83,7 +83,7 @@ class Cooperation:
         front = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks()[slots])
         if not len(front):
             return
-        pred, _, _ = self.updater.predict(vin, slots[front])
+        pred, _ = self.updater.predict(vin, pose, slots[front])
         ids = self.book.slot_ids[slots[front]]
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2, s.descriptor_ratio,
@@ -128,7 +128,8 @@ class Cooperation:
         euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
         st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
         slots = found.landmark_rows
-        pred, pose, _ = self.updater.predict(vin, slots)
+        pose = VehiclePose.of(st, vin)  # relinearised
+        pred, _ = self.updater.predict(vin, pose, slots)
         rows = np.arange(len(slots))
         res = self.updater.update(
             pose.index, pred, rows, frame.z[found.match_rows], self.bounded_vehicles()

@@ -91,13 +91,12 @@ class SlamResult:
 @dataclass(frozen=True, eq=False)
 class _Associated:
     """A frame's accepted associations, in update order: `pred` the landmarks in view
-    predicted, `pred_rows` / `match_rows` (k,) the pairs used, `ids` (k,) their landmark
-    ids, `types` the frame's feature types."""
+    predicted, `pred_rows` / `match_rows` (k,) the pairs used, `types` the frame's feature
+    types."""
 
     pred: LandmarkPrediction
     pred_rows: I64
     match_rows: I64
-    ids: I64
     types: FeatureTypes
 
 
@@ -193,16 +192,15 @@ class Slam:
         if not (len(visible) and len(frame)):
             return None, out
         book = self.book
-        pred, _, P_mm = self.updater.predict(run.vin, visible)
+        pred, P_mm = self.updater.predict(run.vin, pose, visible)
         ids_vis = book.slot_ids[visible]
         assoc = associate(
             pred, book.desc[ids_vis], frame.z, frame.desc, s.gate_chi2, s.descriptor_ratio,
             s.max_descriptor_distance,
         )  # fmt: skip
-        R_hat = s.filter.measurement_noise(self.updater.pixel_noise())
         ok = pose_consistent(
             pred, assoc.pred_index, frame.z[assoc.match_index], pose.P_vv,
-            P_mm[assoc.pred_index], R_hat, s.consistency_chi2,
+            P_mm[assoc.pred_index], self.updater.R_pixel_hat, s.consistency_chi2,
         )  # fmt: skip
         out.rejected = int(np.sum(~ok))
         if not ok.any():
@@ -217,13 +215,12 @@ class Slam:
         )[: s.max_updates_per_frame]  # fmt: skip
         pred_rows = assoc.pred_index[ok][order]
         match_rows = assoc.match_index[ok][order]
-        ids = ids_vis[pred_rows]
         types = classify(
             assoc.near_landmark, match_rows, last_seen[order], frame.stamp_ns,
             s.loop_closure_gap_ns,
         )  # fmt: skip
         out.types = types.type
-        return _Associated(pred, pred_rows, match_rows, ids, types), out
+        return _Associated(pred, pred_rows, match_rows, types), out
 
     def _update(
         self, run: VehicleRun, frame: FrameMatches, found: _Associated, out: FrameOutcome
@@ -251,7 +248,8 @@ class Slam:
             self.events.add(t_ns, "loop_closure", vin.name, "", out.loop, types.absent_ns[loops])
         first = types.type[found.match_rows] == TYPE_2
         if out.type2:
-            others = self.book.other_observers(found.ids[first], run.index, self.names)
+            ids = self.book.slot_ids[out.updated_slots[first]]
+            others = self.book.other_observers(ids, run.index, self.names)
             self.events.add(
                 t_ns, "cross_vehicle", vin.name, others, out.type2, types.absent_ns[first]
             )
@@ -298,7 +296,7 @@ class Slam:
         pose_cov = pose.cov
         p = pose.p_nav_m
         run.stamps_ns.append(t_ns)
-        run.x.append(pose.x.copy())
+        run.x.append(pose.x)  # a copy of the state's block
         run.pose_cov.append(pose_cov)
         reason = self.monitor.check(vin.name, out.nis, out.dof, out.visible, len(frame))
         if reason is not None:

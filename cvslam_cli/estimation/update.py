@@ -21,25 +21,22 @@ from cvslam_cli.records.arrays import F64, I64
 
 class VisualUpdater:
     """Predictions and stacked updates on `state` with the filter `settings`, the pixel
-    noise `pixel_sigma_px` and the run's gamma policy."""
+    noise `pixel_sigma_px` and the run's gamma policy. `R_pixel` (4, 4): the noise of one
+    stereo observation; `R_pixel_hat`: as the filter scales it (eq. 14)."""
 
     def __init__(self, state: JointState, settings: FilterSettings, pixel_sigma_px: float) -> None:
         self.state = state
         self.settings = settings
-        self.pixel_sigma_px = pixel_sigma_px
+        self.R_pixel = np.eye(4) * pixel_sigma_px**2
+        self.R_pixel_hat = settings.measurement_noise(self.R_pixel)
         self.gamma = GammaPolicy(settings)
 
-    def pixel_noise(self) -> F64:
-        """(4, 4) R of one stereo observation, unscaled."""
-        return np.eye(4) * self.pixel_sigma_px**2
-
-    def predict(self, vin: VehicleInput, slots: I64) -> tuple[LandmarkPrediction, VehiclePose, F64]:
-        """The landmarks in `slots` predicted into vin's images with their innovation
-        covariances (with R_hat); also the pose predicted from and P_mm (k, 3, 3)."""
-        pose = VehiclePose.of(self.state, vin)
-        R_hat = self.settings.measurement_noise(self.pixel_noise())
-        pred, P_mm = predict_in_state(self.state, vin, pose, slots, R_hat)
-        return pred, pose, P_mm
+    def predict(
+        self, vin: VehicleInput, pose: VehiclePose, slots: I64
+    ) -> tuple[LandmarkPrediction, F64]:
+        """The landmarks in `slots` predicted into vin's images from its `pose` (the state's
+        now) with their innovation covariances (with R_hat); also P_mm (k, 3, 3)."""
+        return predict_in_state(self.state, vin, pose, slots, self.R_pixel_hat)
 
     def update(
         self, v_idx: I64, pred: LandmarkPrediction, rows: I64, z: F64, bounded: Sequence[str]
@@ -52,7 +49,7 @@ class VisualUpdater:
         H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[rows]
         H = np.concatenate([pred.H_v[rows].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1)
         cols = np.concatenate([v_idx, self.state.landmark_index(pred.slots[rows]).reshape(-1)])
-        R = np.kron(np.eye(k), self.pixel_noise())
+        R = np.kron(np.eye(k), self.R_pixel)
         return self.state.update(
             self.settings, self.gamma, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R,
             vehicles=bounded,
