@@ -255,6 +255,8 @@ class MapConfig:
     max_new_per_frame: int = opt(15, lo=0)
     max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)
     new_landmark_priority: Literal["previous_frame", "current_frame"] = "previous_frame"
+    landmark_coordinates: Literal["cartesian", "inverse_depth"] = "cartesian"
+    anchor_span_s: float = opt(1.0, lo=0.0)
     max_view_angle_deg: float = opt(80.0, lo=0.0, hi=180.0, lo_open=True)
     loop_closure_gap_s: float = opt(20.0, lo=0.0, lo_open=True)
     loop_closure_min_landmarks: int = opt(3, lo=1)

@@ -52,7 +52,7 @@ TYPE_1, TYPE_2, TYPE_3 = 1, 2, 3
 class LandmarkPrediction:
     """k landmarks predicted into a stereo frame: `slots` (k,), `z` (k, 4) predicted pixels
     (u_l, v_l, u_r, v_r), `H_v` (k, 4, n_v) w.r.t. the vehicle block, `H_m` (k, 4, 3)
-    w.r.t. the landmark, `S` (k, 4, 4) innovation covariances."""
+    w.r.t. the landmark's d columns in the state, `S` (k, 4, 4) innovation covariances."""
 
     slots: I64
     z: F64
@@ -93,10 +93,15 @@ def predict_landmarks(
     P_vm: F64,
     P_mm: F64,
     R: F64,
+    M: F64 | None = None,
 ) -> LandmarkPrediction:
     """Predict landmarks m (k, 3) seen from pose (p, Psi), whose d(p, Psi)/d x_v is J_pose
-    (6, n_v). P_vv (n_v, n_v), P_vm (k, n_v, 3), P_mm (k, 3, 3): covariance blocks."""
+    (6, n_v). P_vv (n_v, n_v), P_vm (k, n_v, d), P_mm (k, d, d): covariance blocks of the
+    landmarks' d state columns, with d m / d columns = M (k, 3, d) (None: the identity, the
+    columns are m); H_m (k, 4, d) is w.r.t. those columns."""
     z, H_pose, H_m = obs.predict(p_nav_m, euler_rad, m_nav_m)
+    if M is not None:
+        H_m = H_m @ M
     H_v = H_pose @ J_pose
     HvPvm = H_v @ P_vm  # (k, 4, 3)
     cross = HvPvm @ np.swapaxes(H_m, 1, 2)
@@ -291,7 +296,7 @@ def in_view_rows(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> I64:
 
 def view_directions(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> F64:
     """(k, 3) unit vectors from landmarks m (k, 3) to vin's left camera centre at (p, Psi)."""
-    centre = p + euler_zyx_to_matrix(*euler) @ vin.obs.t_body_cam[0]
+    centre, _ = vin.obs.left_camera(p, euler)
     d = centre - np.atleast_2d(m_nav_m)
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
@@ -317,7 +322,7 @@ def record_observations(
     """Book that run's vehicle observed the landmarks in `slots` at its current pose."""
     vin = run.vin
     p, euler = vin.model.pose(state.vehicle_x(vin.name))
-    views = view_directions(vin, p, euler, state.landmarks()[slots])
+    views = view_directions(vin, p, euler, state.landmarks(slots))
     book.observe(book.slot_ids[slots], run.index, stamp_ns, views)
 
 
@@ -326,13 +331,14 @@ def predict_in_state(
 ) -> tuple[LandmarkPrediction, F64]:
     """The state's landmarks in `slots` predicted into vin's images from its pose, with
     their innovation covariances (R_hat (4, 4) the pixel noise as the filter scales it);
-    also their covariances P_mm (k, 3, 3)."""
-    lm_idx = state.landmark_index(slots)  # (k, 3)
+    also the covariances P_mm (k, d, d) of their columns in the state
+    (`JointState.landmark_columns`: what the prediction's H_m is the Jacobian for)."""
+    cols = state.landmark_columns(slots)  # (k, d)
     P = state.P
-    P_vm = P[pose.index[:, None, None], lm_idx[None, :, :]].transpose(1, 0, 2)
-    P_mm = P[lm_idx[:, :, None], lm_idx[:, None, :]]
+    P_vm = P[pose.index[:, None, None], cols[None, :, :]].transpose(1, 0, 2)
+    P_mm = P[cols[:, :, None], cols[:, None, :]]
+    m, M = state.landmarks_nav(slots)
     pred = predict_landmarks(
-        vin.obs, pose.p_nav_m, pose.euler_rad, pose.J, slots, state.landmarks()[slots],
-        pose.P_vv, P_vm, P_mm, R_hat,
+        vin.obs, pose.p_nav_m, pose.euler_rad, pose.J, slots, m, pose.P_vv, P_vm, P_mm, R_hat, M,
     )  # fmt: skip
     return pred, P_mm

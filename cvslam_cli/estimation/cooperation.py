@@ -80,7 +80,7 @@ class Cooperation:
             return
         vin = other.vin
         pose = VehiclePose.of(self.state, vin)
-        front = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks()[slots])
+        front = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots))
         if not len(front):
             return
         pred, _ = self.updater.predict(vin, pose, slots[front])

@@ -33,10 +33,11 @@ from cvslam_cli.estimation.association import (
     view_directions,
 )
 from cvslam_cli.estimation.frame import FrameMatches
+from cvslam_cli.estimation.landmark_coordinates import AnchoredInverseDepth
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
-from cvslam_cli.estimation.vehicle import Candidates, VehiclePose, VehicleRun
+from cvslam_cli.estimation.vehicle import Candidates, VehicleInput, VehiclePose, VehicleRun
 from cvslam_cli.records.arrays import F64, I64
 
 
@@ -51,6 +52,9 @@ class NewLandmarks:
         self.book = book
         self.settings = settings
         self.max_landmarks = max_landmarks
+        # anchored coordinates: per vehicle index, the anchor its new landmarks refer to and
+        # when it was cloned (a new clone once it is older than settings.anchor_span_ns)
+        self._anchors: dict[int, tuple[int | None, int]] = {}
 
     def wanted(self, n_updated: int) -> int:
         """How many new landmarks a frame that updated `n_updated` should add."""
@@ -119,26 +123,23 @@ class NewLandmarks:
         pick = self._make_room(run, runs, protected, pick)
         if len(pick) == 0:
             return np.zeros(0, dtype=np.int64)
-        st = self.state
         vin = run.vin
-        pose = VehiclePose.of(st, vin)
-        m, J_pose, J_pc = vin.obs.landmark_jacobians(
-            pose.p_nav_m, pose.euler_rad, frame.p_cam_m[pick]
-        )
-        k = len(pick)
-        Jx = (J_pose @ pose.J).reshape(3 * k, len(pose.index))  # d m / d x_v, (3k, n_v)
-        P_mx = Jx @ st.P[pose.index, :]
-        P_mm = P_mx[:, pose.index] @ Jx.T
-        meas = J_pc @ frame.cov_cam_m2[pick] @ J_pc.T  # (k, 3, 3)
-        for j in range(k):
-            P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += meas[j]
-        slots = st.add_landmarks(m, P_mm, P_mx)
+        pose = VehiclePose.of(self.state, vin)
+        p_cam, cov_cam = frame.p_cam_m[pick], frame.cov_cam_m2[pick]
+        if self.state.coords.anchored:
+            key, since_ns = self._anchors.get(run.index, (None, frame.stamp_ns))
+            if frame.stamp_ns - since_ns > self.settings.anchor_span_ns:
+                key, since_ns = None, frame.stamp_ns
+            slots, key = _anchored(self.state, vin, pose, p_cam, cov_cam, key)
+            self._anchors[run.index] = (key, since_ns)
+        else:
+            slots = _cartesian(self.state, vin, pose, p_cam, cov_cam)
         self.book.add(
             frame.desc[pick],
             run.index,
             frame.stamp_ns,
             frame.true_id[pick],
-            view_directions(vin, pose.p_nav_m, pose.euler_rad, m),
+            view_directions(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots)),
         )
         return slots
 
@@ -158,6 +159,59 @@ class NewLandmarks:
         )
         order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2), latest)
         evict = order[: max(over, bound // 10)]
-        self.book.store_estimates(evict, st.landmarks()[evict], covs[evict])
+        self.book.store_estimates(evict, st.landmarks(evict), covs[evict])
         self.book.keep_slots(st.remove_landmarks(evict))
         return pick[: max(0, bound - st.n_landmarks)]
+
+
+def _cartesian(
+    st: JointState, vin: VehicleInput, pose: VehiclePose, p_cam_m: F64, cov_cam_m2: F64
+) -> I64:
+    """Cartesian landmarks from points p_cam_m (k, 3) in the left camera with covariances
+    cov_cam_m2 (k, 3, 3) (module docstring: m = g(x_v, p_cam))."""
+    m, J_pose, J_pc = vin.obs.landmark_jacobians(pose.p_nav_m, pose.euler_rad, p_cam_m)
+    k = len(m)
+    Jx = (J_pose @ pose.J).reshape(3 * k, len(pose.index))  # d m / d x_v, (3k, n_v)
+    P_mx = Jx @ st.P[pose.index, :]
+    P_mm = P_mx[:, pose.index] @ Jx.T
+    meas = J_pc @ cov_cam_m2 @ J_pc.T  # (k, 3, 3)
+    for j in range(k):
+        P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += meas[j]
+    return st.add_landmarks(m, P_mm, P_mx)
+
+
+def _anchored(
+    st: JointState,
+    vin: VehicleInput,
+    pose: VehiclePose,
+    p_cam_m: F64,
+    cov_cam_m2: F64,
+    anchor_key: int | None,
+) -> tuple[I64, int]:
+    """Anchored inverse-depth landmarks (`landmark_coordinates.py`) from the same points,
+    relative to the anchor `anchor_key` (None, or one no longer in the state: a new clone of
+    the pose (p, Psi) = J x_v, P_aa = J P_vv J^T, P_ax = J P_v). theta = f(x_v, x_a, p_cam)
+    through the Cartesian point, augmented like it (P_tx = F P_(v,a),x, P_tt = F P F^T +
+    F_c C_cam F_c^T); from a fresh clone theta depends on p_cam only. Returns the slots and
+    the anchor's key."""
+    a_rows = None if anchor_key is None else st.anchor_rows(anchor_key)
+    if anchor_key is None or a_rows is None:
+        P_ax = pose.J @ st.P[pose.index, :]
+        anchor_key, a_rows = st.add_anchor(
+            np.concatenate([pose.p_nav_m, pose.euler_rad]), P_ax[:, pose.index] @ pose.J.T, P_ax
+        )
+    R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
+    m, J_pose, J_pc = vin.obs.landmark_jacobians(pose.p_nav_m, pose.euler_rad, p_cam_m)
+    theta, T_m, T_a = AnchoredInverseDepth().from_nav(m, st.x[a_rows], R_cb, t_bc)
+    k = len(m)
+    F = np.concatenate(
+        [(T_m @ J_pose @ pose.J).reshape(3 * k, len(pose.index)), T_a.reshape(3 * k, 6)], axis=1
+    )
+    rows = np.concatenate([pose.index, a_rows])
+    P_tx = F @ st.P[rows, :]
+    P_tt = P_tx[:, rows] @ F.T
+    F_c = T_m @ J_pc
+    meas = F_c @ cov_cam_m2 @ np.swapaxes(F_c, 1, 2)
+    for j in range(k):
+        P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += meas[j]
+    return st.add_landmarks(theta, P_tt, P_tx, anchor_key, R_cb, t_bc), anchor_key

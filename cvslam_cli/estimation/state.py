@@ -1,10 +1,14 @@
 """The joint state of the central filter: every vehicle's block, then every landmark in the
 state (paper eq. 3 and section "Cooperative VSLAM"):
 
-    X = [X_v1 ... X_vM, m_1 ... m_L],   P (n, n),   n = sum(n_vi) + 3 L
+    X = [X_v1 ... X_vM, landmarks ...],   P (n, n)
 
-Vehicle blocks come first and keep their place; landmark j occupies rows
-`n_vehicles + 3 j : n_vehicles + 3 j + 3`. The structure the filter exploits:
+Vehicle blocks come first and keep their place; then, in the order they were added, each
+landmark's own 3 numbers and, with anchored coordinates (`landmark_coordinates.py`), the
+anchor clones (6 numbers: a vehicle pose, p and Psi) the landmarks refer to. A landmark's
+columns (`landmark_columns`) are its anchor's and its own; outside the update everything
+sees nav-frame positions and covariances (`landmarks`, `landmark_covariances`). The
+structure the filter exploits:
 
 - predict (eq. 1, 2) touches one vehicle block only: landmarks are static and the other
   vehicles unchanged, so with the vehicle's transition F and process noise Q over an interval
@@ -12,8 +16,8 @@ Vehicle blocks come first and keep their place; landmark j occupies rows
   costs O(n n_v), not O(n^3);
 - an observation touches one vehicle and the landmarks it sees (H's non-zero columns), so the
   update costs O(n^2 m) (`filters.py`);
-- adding a landmark appends 3 rows/columns, removing landmarks deletes theirs (Gaussian
-  marginalisation).
+- adding a landmark appends 3 rows/columns (an anchor clone 6), removing landmarks deletes
+  theirs, and an anchor's with its last landmark (Gaussian marginalisation).
 
 x and P are views of storage with room to grow (capacity doubles when full). The
 measurement update works on that storage in place (`filters.ekf_update_inplace`,
@@ -29,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult, update_inplace
+from cvslam_cli.estimation.landmark_coordinates import Cartesian, LandmarkCoordinates
 from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.records.arrays import F64, I64
 
@@ -45,10 +50,26 @@ class VehicleBlock:
 
 
 class JointState:
-    """Mean `x` (n,) and covariance `P` (n, n) of all vehicles and the landmarks in the state."""
+    """Mean `x` (n,) and covariance `P` (n, n) of all vehicles and the landmarks in the state,
+    written in the landmark `coords`."""
 
-    def __init__(self, blocks: list[tuple[str, MotionModel, F64, F64]]) -> None:
-        """blocks: (vehicle name, motion model, x0 (n_v,), P0 (n_v, n_v)) per vehicle."""
+    def __init__(
+        self,
+        blocks: list[tuple[str, MotionModel, F64, F64]],
+        coords: LandmarkCoordinates | None = None,
+    ) -> None:
+        """blocks: (vehicle name, motion model, x0 (n_v,), P0 (n_v, n_v)) per vehicle;
+        coords: how landmarks are written (default: Cartesian)."""
+        self.coords = Cartesian() if coords is None else coords
+        # per landmark slot: its own rows (L, 3), its anchor (L,) (-1: none), and its anchor
+        # camera's R_cam_body (L, 3, 3) and t_body_cam (L, 3); per anchor: its rows (A, 6)
+        self._own_rows = np.zeros((0, 3), dtype=np.int64)
+        self._anchor_of = np.zeros(0, dtype=np.int64)
+        self._R_cam_body = np.zeros((0, 3, 3))
+        self._t_body_cam = np.zeros((0, 3))
+        self._anchor_rows = np.zeros((0, 6), dtype=np.int64)
+        self._anchor_key = np.zeros(0, dtype=np.int64)  # stable names of the anchors
+        self._next_anchor_key = 0
         self.vehicles: dict[str, VehicleBlock] = {}
         start = 0
         for name, model, _, _ in blocks:
@@ -109,22 +130,48 @@ class JointState:
 
     @property
     def n_landmarks(self) -> int:
-        return (self._n - self.n_vehicle_states) // 3
+        return len(self._own_rows)
+
+    @property
+    def n_anchors(self) -> int:
+        return len(self._anchor_rows)
+
+    def _slots(self, slots: I64 | None) -> I64:
+        return np.arange(self.n_landmarks) if slots is None else np.asarray(slots, np.int64)
 
     def landmark_index(self, slots: I64) -> I64:
-        """State rows of the landmarks in `slots` (k,) -> (k, 3)."""
-        return self.n_vehicle_states + 3 * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(3)
+        """Own state rows of the landmarks in `slots` (k,) -> (k, 3)."""
+        return self._own_rows[np.asarray(slots, dtype=np.int64)]
 
-    def landmarks(self) -> F64:
-        """(L, 3) landmark positions, nav frame."""
-        return self.x[self.n_vehicle_states :].reshape(-1, 3)
+    def landmark_columns(self, slots: I64) -> I64:
+        """State rows a landmark's position depends on, (k, coords.size): its anchor's (if
+        any), then its own."""
+        slots = np.asarray(slots, dtype=np.int64)
+        own = self._own_rows[slots]
+        if not self.coords.anchored:
+            return own
+        return np.concatenate([self._anchor_rows[self._anchor_of[slots]], own], axis=1)
+
+    def landmarks_nav(self, slots: I64 | None = None) -> tuple[F64, F64]:
+        """Nav-frame positions (k, 3) of the landmarks in `slots` (None: all) and their
+        Jacobians w.r.t. their columns (k, 3, coords.size)."""
+        slots = self._slots(slots)
+        params = self.x[self.landmark_columns(slots)]
+        return self.coords.to_nav(params, self._R_cam_body[slots], self._t_body_cam[slots])
+
+    def landmarks(self, slots: I64 | None = None) -> F64:
+        """(k, 3) nav-frame positions of the landmarks in `slots` (None: all)."""
+        return self.landmarks_nav(slots)[0]
 
     def landmark_covariances(self, slots: I64 | None = None) -> F64:
-        """(k, 3, 3) marginal covariances of the landmarks in `slots` (None: all)."""
-        L = self.n_landmarks
-        slots = np.arange(L) if slots is None else np.asarray(slots, dtype=np.int64)
-        idx = self.landmark_index(slots)
-        return self.P[idx[:, :, None], idx[:, None, :]]
+        """(k, 3, 3) nav-frame marginal covariances of the landmarks in `slots` (None: all)."""
+        slots = self._slots(slots)
+        cols = self.landmark_columns(slots)
+        P_cc = self.P[cols[:, :, None], cols[:, None, :]]
+        if not self.coords.anchored:
+            return P_cc
+        M = self.landmarks_nav(slots)[1]
+        return M @ P_cc @ np.swapaxes(M, 1, 2)
 
     def vehicle_x(self, name: str) -> F64:
         vb = self.vehicles[name]
@@ -147,31 +194,88 @@ class JointState:
         self.P[:, s] = rows.T
         self.P[s, s] = 0.5 * (P_vv + P_vv.T)
 
-    def add_landmarks(self, m: F64, P_mm: F64, P_mx: F64) -> I64:
-        """Append k landmarks: positions m (k, 3), joint covariance P_mm (3k, 3k) and
-        cross-covariance with the current state P_mx (3k, n). Returns their slots (k,)."""
-        k = len(m)
+    def _append(self, x_new: F64, P_new: F64, P_cross: F64) -> I64:
+        """Append r states: mean x_new (r,), covariance P_new (r, r), cross-covariance with
+        the current state P_cross (r, n). Returns their rows (r,)."""
+        r = len(x_new)
         n = self.n
-        self._reserve(n + 3 * k)
-        self._x[n : n + 3 * k] = np.asarray(m, dtype=float).reshape(-1)
-        self._P[n : n + 3 * k, :n] = P_mx
-        self._P[:n, n : n + 3 * k] = P_mx.T
-        self._P[n : n + 3 * k, n : n + 3 * k] = 0.5 * (P_mm + P_mm.T)
-        self._n = n + 3 * k
+        self._reserve(n + r)
+        self._x[n : n + r] = x_new
+        self._P[n : n + r, :n] = P_cross
+        self._P[:n, n : n + r] = P_cross.T
+        self._P[n : n + r, n : n + r] = 0.5 * (P_new + P_new.T)
+        self._n = n + r
+        return np.arange(n, n + r)
+
+    def add_anchor(self, x_a: F64, P_aa: F64, P_ax: F64) -> tuple[int, I64]:
+        """Append an anchor clone: a pose (p, Psi) x_a (6,), its covariance P_aa (6, 6) and
+        cross-covariance with the current state P_ax (6, n). Returns its key (a name that
+        stays valid while the anchor is in the state; `anchor_rows`) and its rows (6,)."""
+        key = self._next_anchor_key
+        self._next_anchor_key += 1
+        rows = self._append(np.asarray(x_a, dtype=float), P_aa, P_ax)
+        self._anchor_rows = np.concatenate([self._anchor_rows, rows[None]])
+        self._anchor_key = np.concatenate([self._anchor_key, [key]])
+        return key, rows
+
+    def anchor_rows(self, key: int) -> I64 | None:
+        """State rows (6,) of the anchor `key`; None once it has left the state."""
+        hit = np.flatnonzero(self._anchor_key == key)
+        return self._anchor_rows[hit[0]] if len(hit) else None
+
+    def add_landmarks(
+        self,
+        params: F64,
+        P_pp: F64,
+        P_px: F64,
+        anchor_key: int | None = None,
+        R_cam_body: F64 | None = None,
+        t_body_cam: F64 | None = None,
+    ) -> I64:
+        """Append k landmarks: their own numbers params (k, 3) (Cartesian: m; anchored:
+        theta), joint covariance P_pp (3k, 3k), cross-covariance with the current state
+        P_px (3k, n); anchored coordinates: the anchor they refer to (its key) and its
+        camera's R_cam_body (3, 3) and t_body_cam (3,). Returns their slots (k,)."""
+        k = len(params)
+        anchor = (
+            -1 if anchor_key is None else int(np.flatnonzero(self._anchor_key == anchor_key)[0])
+        )
+        rows = self._append(np.asarray(params, dtype=float).reshape(-1), P_pp, P_px)
+        R = np.eye(3) if R_cam_body is None else np.asarray(R_cam_body, dtype=float)
+        t = np.zeros(3) if t_body_cam is None else np.asarray(t_body_cam, dtype=float)
+        self._own_rows = np.concatenate([self._own_rows, rows.reshape(k, 3)])
+        self._anchor_of = np.concatenate([self._anchor_of, np.full(k, anchor, dtype=np.int64)])
+        self._R_cam_body = np.concatenate([self._R_cam_body, np.broadcast_to(R, (k, 3, 3))])
+        self._t_body_cam = np.concatenate([self._t_body_cam, np.broadcast_to(t, (k, 3))])
         L = self.n_landmarks
         return np.arange(L - k, L)
 
     def remove_landmarks(self, slots: I64) -> I64:
-        """Marginalise the landmarks in `slots` out. Returns the old slot of every remaining
-        landmark in its new order (new slot i held old slot `kept[i]`)."""
-        L = self.n_landmarks
-        keep = np.ones(L, dtype=bool)
+        """Marginalise the landmarks in `slots` out, and the anchors no remaining landmark
+        refers to. Returns the old slot of every remaining landmark in its new order (new
+        slot i held old slot `kept[i]`)."""
+        keep = np.ones(self.n_landmarks, dtype=bool)
         keep[np.asarray(slots, dtype=np.int64)] = False
         kept = np.flatnonzero(keep)
-        idx = np.concatenate([np.arange(self.n_vehicle_states), self.landmark_index(kept).ravel()])
+        used = np.zeros(self.n_anchors, dtype=bool)
+        used[self._anchor_of[kept][self._anchor_of[kept] >= 0]] = True
+        keep_rows = np.ones(self.n, dtype=bool)
+        keep_rows[self._own_rows[~keep].ravel()] = False
+        keep_rows[self._anchor_rows[~used].ravel()] = False
+        idx = np.flatnonzero(keep_rows)
+        new_row = np.cumsum(keep_rows) - 1  # old row -> new row, for the rows kept
+        new_anchor = np.cumsum(used) - 1
         x, P = self.x[idx], self.P[np.ix_(idx, idx)]
         self._n = len(idx)
         self.x, self.P = x, P
+        anchor_of = self._anchor_of[kept]
+        has = anchor_of >= 0
+        anchor_of[has] = new_anchor[anchor_of[has]]
+        self._anchor_of = anchor_of
+        self._own_rows = new_row[self._own_rows[kept]]
+        self._anchor_rows = new_row[self._anchor_rows[used]]
+        self._anchor_key = self._anchor_key[used]
+        self._R_cam_body, self._t_body_cam = self._R_cam_body[kept], self._t_body_cam[kept]
         return kept
 
     def bounded_states(

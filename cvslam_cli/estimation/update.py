@@ -2,8 +2,9 @@
 EKF or NH-infinity update of the joint state (`filters.py`).
 
 Each observation z_j = (u_l, v_l, u_r, v_r) of landmark j gives 4 rows of H, touching the
-observing vehicle's block (H_v,j) and landmark j's 3 columns (H_m,j) only; the noise is the
-pixel noise, independent per coordinate (R = sigma_px^2 I), scaled by the filter (eq. 14).
+observing vehicle's block (H_v,j) and landmark j's columns (H_m,j: its 3, and its anchor's
+with anchored coordinates) only; the noise is the pixel noise, independent per coordinate
+(R = sigma_px^2 I), scaled by the filter (eq. 14).
 """
 
 from __future__ import annotations
@@ -45,10 +46,14 @@ class VisualUpdater:
         rows `rows` (k,) by the vehicle whose state rows are v_idx; NH-infinity's bound on
         the vehicles `bounded`."""
         k, nv = len(rows), len(v_idx)
-        H_lm = np.zeros((k, 4, k, 3))  # landmark j's rows touch only its columns
+        lm_cols = self.state.landmark_columns(pred.slots[rows])  # (k, d)
+        d = lm_cols.shape[1]
+        H_lm = np.zeros((k, 4, k, d))  # landmark j's rows touch only its columns
         H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[rows]
-        H = np.concatenate([pred.H_v[rows].reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], axis=1)
-        cols = np.concatenate([v_idx, self.state.landmark_index(pred.slots[rows]).reshape(-1)])
+        H = np.concatenate([pred.H_v[rows].reshape(4 * k, nv), H_lm.reshape(4 * k, d * k)], axis=1)
+        # an anchor shared by several landmarks appears once per landmark: the update is
+        # linear in H's columns, so repeated state columns add up
+        cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
         R = np.kron(np.eye(k), self.R_pixel)
         return self.state.update(
             self.settings, self.gamma, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R,

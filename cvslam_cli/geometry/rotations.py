@@ -91,6 +91,29 @@ def euler_zyx_derivatives(roll: float, pitch: float, yaw: float) -> F64:
     return np.stack([Rz @ Ry @ Rx @ e1x, Rz @ Ry @ e2x @ Rx, Rz @ e3x @ Ry @ Rx])
 
 
+def euler_zyx_matrices(euler_rad: F64) -> tuple[F64, F64]:
+    """Batched `euler_zyx_to_matrix` and `euler_zyx_derivatives`: (k, 3) (roll, pitch, yaw)
+    -> C (k, 3, 3) and d C / d (roll, pitch, yaw) (k, 3, 3, 3)."""
+    e = np.atleast_2d(np.asarray(euler_rad, dtype=float))
+    k = len(e)
+    c, s = np.cos(e), np.sin(e)
+    one, zero = np.ones(k), np.zeros(k)
+
+    def stack(rows: list[list[F64]]) -> F64:
+        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+    Rx = stack([[one, zero, zero], [zero, c[:, 0], -s[:, 0]], [zero, s[:, 0], c[:, 0]]])
+    Ry = stack([[c[:, 1], zero, s[:, 1]], [zero, one, zero], [-s[:, 1], zero, c[:, 1]]])
+    Rz = stack([[c[:, 2], -s[:, 2], zero], [s[:, 2], c[:, 2], zero], [zero, zero, one]])
+    e1x = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    e2x = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])
+    e3x = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])
+    RzRy = Rz @ Ry
+    C = RzRy @ Rx
+    dC = np.stack([C @ e1x, RzRy @ e2x @ Rx, Rz @ e3x @ Ry @ Rx], axis=1)
+    return C, dC
+
+
 def matrix_to_euler_zyx(C_nav_body: F64) -> F64:
     """(roll, pitch, yaw) of a body -> nav rotation matrix."""
     C = np.asarray(C_nav_body, dtype=float)
