@@ -90,7 +90,7 @@ def _log_option(what: str) -> Callable[..., Any]:
         "--log",
         "log_paths",
         multiple=True,
-        type=click.Path(dir_okay=False, path_type=Path),
+        type=click.Path(path_type=Path),
         help=f"Log with {what} (repeatable); default: the logs the features came from.",
     )
 
@@ -123,9 +123,9 @@ def info(logs: tuple[Path, ...], as_json: bool, cfg: Config) -> None:
     Exits 1 when a problem that would stop later stages is found (after printing the report).
     """
     from cvslam_cli.info import first_error, inspect_logs, render_text
-    from cvslam_cli.io.mcap_source import McapLogSource
+    from cvslam_cli.io.log_open import open_log
 
-    report = inspect_logs([McapLogSource(p) for p in logs], cfg)
+    report = inspect_logs([open_log(p) for p in logs], cfg)
     click.echo(json.dumps(report, indent=2) if as_json else render_text(report))
     err = first_error(report)
     if err:

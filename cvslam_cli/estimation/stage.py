@@ -67,8 +67,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
     write_result_mcap,
 )
-from cvslam_cli.io.logs import LogSet
-from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.logs import LogSet, open_logs
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
@@ -555,7 +554,7 @@ def run(
     if plan.action == "skip":
         log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out.path)
         return FuseSummary(out.path, True, kind, single, {}, 0, 0.0, 0.0, 0)
-    logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
+    logs = open_logs(logs_used, cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     settings = slam_settings(cfg.fuse, kind)
     res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress)

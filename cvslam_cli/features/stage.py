@@ -42,8 +42,7 @@ from cvslam_cli.geometry.stereo import (
 )
 from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.features_file import save_features
-from cvslam_cli.io.logs import LogSet
-from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.logs import LogSet, open_logs
 from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.parallel import STATE, ordered_map
@@ -284,7 +283,7 @@ def run(
 ) -> ExtractSummary:
     rd = RunDir(run_dir)
     layout = RunLayout(run_dir)
-    logs = LogSet([McapLogSource(p) for p in log_paths], cfg.logs)
+    logs = open_logs(log_paths, cfg.logs)
     vehicles = _stereo_vehicles(logs)
     outputs = [p for v in vehicles for p in (layout.feature_file(v), layout.feature_stats(v))]
     plan = rd.plan(EXTRACT_STAGE, cfg, ("logs", "extract"), list(log_paths), outputs, force)

@@ -19,6 +19,7 @@ Memory is bounded by the reorder window and the pairing tolerance, not by the lo
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.io.calibration import Calibration, StaticTransforms
 from cvslam_cli.io.images import ImageDecodeError, decode_compressed, decode_raw
 from cvslam_cli.io.log_merge import ReorderWindow, merged_messages
+from cvslam_cli.io.log_open import open_log
 from cvslam_cli.io.log_stats import Problems, TopicStats, VehicleStats
 from cvslam_cli.io.mcap_source import LogSource, RawMessage, TopicInfo
 from cvslam_cli.io.ros_messages import CONVERTERS, stamp_ns_of
@@ -165,6 +167,12 @@ class LogSet:
             if error is not None:
                 self.problems.report("error", str(error))
         return ImageRecord(stamp_ns, img, enc, str(raw.msg.header.frame_id), raw.topic)
+
+
+def open_logs(paths: Sequence[Path], cfg: LogsConfig, *, strict: bool = True) -> LogSet:
+    """The `LogSet` of the logs at `paths`, each opened by the reader its kind needs
+    (`log_open.py`: MCAP, rosbag2 folder, sqlite3, ROS 1, compressed MCAP)."""
+    return LogSet([open_log(Path(p)) for p in paths], cfg, strict=strict)
 
 
 def _calibration_error(

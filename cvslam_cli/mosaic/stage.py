@@ -37,8 +37,7 @@ from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.atomic import atomic_dir
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import read_map_csv
-from cvslam_cli.io.logs import LogSet, ground_truth_tables
-from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.logs import LogSet, ground_truth_tables, open_logs
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
 from cvslam_cli.io.run_layout import (
     MERGED_MOSAIC,
@@ -216,7 +215,7 @@ def _fuse_inputs(fuse: FuseFolder, vehicles: Sequence[str], source: str) -> dict
 
 
 def _open_logs(cfg: Config, logs_used: Sequence[Path], vehicles: Sequence[str]) -> LogSet:
-    logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
+    logs = open_logs(logs_used, cfg.logs)
     missing = [v for v in vehicles if v not in logs.vehicles]
     if missing:
         raise CvslamError(f"{logs.names}: no vehicle {missing[0]!r} (it has features)")
