@@ -91,8 +91,18 @@ def _log_option(what: str) -> Callable[..., Any]:
         "log_paths",
         multiple=True,
         type=click.Path(path_type=Path),
-        help=f"Log with {what} (repeatable); default: the logs the features came from.",
+        help=f"Log with {what} (repeatable; NAME=PATH: the log of vehicle NAME); default: the "
+        "logs the features came from.",
     )
+
+
+def bound_logs(logs: Sequence[Path], cfg: Config) -> tuple[list[Path], Config]:
+    """(plain log paths, `cfg` with the `NAME=PATH` arguments bound as logs.vehicles.NAME.log)."""
+    from cvslam_cli.io.log_open import split_log_args
+    from cvslam_cli.io.logs import bind_logs
+
+    paths, bound = split_log_args(logs)
+    return paths, dataclasses.replace(cfg, logs=bind_logs(cfg.logs, bound))
 
 
 def write_resolved_config(cfg: Config, path: Path) -> Path:
@@ -120,12 +130,16 @@ def cli(verbose: int, quiet: bool) -> None:
 def info(logs: tuple[Path, ...], as_json: bool, cfg: Config) -> None:
     """Summarise LOG... per vehicle: topics, rates, stereo pairs, calibration, problems.
 
-    Exits 1 when a problem that would stop later stages is found (after printing the report).
+    A LOG is an .mcap file, a rosbag2 folder, a .db3 or a ROS 1 .bag; NAME=LOG reads LOG as
+    vehicle NAME's (its topic names as they are). Exits 1 when a problem that would stop later
+    stages is found, or no vehicle is (after printing the report).
     """
     from cvslam_cli.info import first_error, inspect_logs, render_text
     from cvslam_cli.io.log_open import open_log
+    from cvslam_cli.io.logs import all_log_paths
 
-    report = inspect_logs([open_log(p) for p in logs], cfg)
+    paths, cfg = bound_logs(logs, cfg)
+    report = inspect_logs([open_log(p) for p in all_log_paths(paths, cfg.logs)], cfg)
     click.echo(json.dumps(report, indent=2) if as_json else render_text(report))
     err = first_error(report)
     if err:
@@ -319,11 +333,13 @@ def simulate(
 @config_options
 def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cfg: Config) -> None:
     """Adaptive SIFT + stereo-constrained matching on every stereo frame of LOG...
+    (NAME=LOG: the log of vehicle NAME).
 
     Writes RUN_DIR/features/<vehicle>.npz (docs/feature_format.md) and
     <vehicle>_stats.csv, and records the stage in RUN_DIR/run.yaml.
     """
-    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
+    paths, cfg = bound_logs(logs, cfg)
+    do_extract(cfg, paths, run_dir, workers=workers, force=force)
 
 
 def do_extract(
@@ -393,7 +409,8 @@ def fuse(
     Writes trajectories, dead reckoning, pose covariances, the landmark map, timeline,
     events and result.mcap to RUN_DIR/fuse (docs/fuse_outputs.md).
     """
-    do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=log_paths, force=force)
+    paths, cfg = bound_logs(log_paths, cfg)
+    do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=paths, force=force)
 
 
 def do_fuse(
@@ -486,7 +503,8 @@ def mosaic(
     Writes <vehicle>.png, all.png (with .pgw world files) and *_overlay.png to RUN_DIR/mosaic
     (docs/mosaic.md).
     """
-    do_mosaic(cfg, run_dir, source=source, gsd_m=gsd_m, log_paths=log_paths, force=force)
+    paths, cfg = bound_logs(log_paths, cfg)
+    do_mosaic(cfg, run_dir, source=source, gsd_m=gsd_m, log_paths=paths, force=force)
 
 
 def do_mosaic(
@@ -579,7 +597,8 @@ def eval_cmd(
     """
     if align is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, align=align))
-    do_eval(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+    paths, cfg = bound_logs(log_paths, cfg)
+    do_eval(cfg, run_dir, gt=gt, log_paths=paths, force=force)
 
 
 def do_eval(
@@ -615,9 +634,10 @@ def run_cmd(
 ) -> None:
     """All stages on LOG... with one config: extract, fuse (cooperative NH-infinity and the
     comparisons in run.comparisons), mosaic, eval. Stages whose config and inputs are
-    unchanged are skipped.
+    unchanged are skipped. NAME=LOG: the log of vehicle NAME.
     """
-    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
+    paths, cfg = bound_logs(logs, cfg)
+    do_extract(cfg, paths, run_dir, workers=workers, force=force)
     do_fuse(cfg, run_dir, filter_kind="hinf", single=False, log_paths=(), force=force)
     for comparison in cfg.run.comparisons:
         filter_kind = "ekf" if comparison.startswith("ekf") else "hinf"

@@ -96,9 +96,14 @@ class RigConfig:
 
 @dataclass(frozen=True)
 class VehicleConfig:
+    """One vehicle. `log`: the log file (or rosbag2 folder) holding this vehicle's topics,
+    read with its topic names as they are (`NAME=PATH` on the command line; in YAML also the
+    shorthand `logs.vehicles: {NAME: PATH}`); empty: looked for in every log given."""
+
     kind: Literal["uav", "ugv"] = "uav"
     topics: TopicMap = opt(TopicMap())
     rig: RigConfig = opt(RigConfig())
+    log: str = ""
 
 
 @dataclass(frozen=True)
@@ -477,9 +482,22 @@ def _expand_vehicles(raw: Mapping[str, Any]) -> dict[str, Any]:
         return dict(raw)
     vehicles = {
         name: deep_merge(defaults, v) if isinstance(v, Mapping) else v
-        for name, v in logs["vehicles"].items()
+        for name, v in _log_shorthand(logs["vehicles"]).items()
     }
     return {**raw, "logs": {**logs, "vehicles": vehicles}}
+
+
+def _log_shorthand(vehicles: Mapping[str, Any]) -> dict[str, Any]:
+    """`logs.vehicles: {robot1: path}` is `{robot1: {log: path}}`."""
+    return {k: {"log": v} if isinstance(v, str) else v for k, v in vehicles.items()}
+
+
+def _normalise(raw: Mapping[str, Any]) -> dict[str, Any]:
+    """A source with the `logs.vehicles` shorthand expanded (before merging sources)."""
+    logs = raw.get("logs")
+    if isinstance(logs, Mapping) and isinstance(logs.get("vehicles"), Mapping):
+        return {**raw, "logs": {**logs, "vehicles": _log_shorthand(logs["vehicles"])}}
+    return dict(raw)
 
 
 def to_dict(cfg: Any) -> Any:
@@ -530,6 +548,7 @@ def load_config(
         parts, value = parse_override(text)
         sources.append((f"--set {text}", _nest(parts, value)))
     for name, raw in sources:
+        raw = _normalise(raw)
         # validate each source alone, so that an error names it
         build_dataclass(Config, _expand_vehicles(raw), "", name)
         merged = deep_merge(merged, raw)

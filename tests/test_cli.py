@@ -197,7 +197,9 @@ def test_zero_baseline_is_fatal(cvslam, tmp_path):
         f"logs.vehicles.uav1.rig.right={cam}",
     )
     assert res.code == 1
-    assert "zero stereo baseline" in res.err.splitlines()[-1]
+    last = res.err.splitlines()[-1]
+    assert "no stereo extrinsics (zero baseline): /tf_static does not link uav1/base_link" in last
+    assert "logs.vehicles.uav1.rig.left.T_body_cam and rig.right.T_body_cam" in last
 
 
 def test_import_euroc_then_info(cvslam, shared_data, tmp_path):

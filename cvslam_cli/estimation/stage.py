@@ -67,7 +67,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
     write_result_mcap,
 )
-from cvslam_cli.io.logs import LogSet, open_logs
+from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
@@ -547,7 +547,7 @@ def run(
     layout = RunLayout(run_dir)
     out = layout.fuse(fuse_name(kind, single))
     files, features, metas = _load_features(layout)
-    logs_used = list(log_paths) or layout.find_logs(metas)
+    logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
     rd = RunDir(run_dir)
     outputs = _outputs(out, list(features))
     plan = rd.plan(out.name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)

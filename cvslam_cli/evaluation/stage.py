@@ -39,7 +39,7 @@ from cvslam_cli.evaluation.report import FigureEntry, render_report
 from cvslam_cli.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
-from cvslam_cli.io.logs import LogSet, ground_truth_tables, open_logs
+from cvslam_cli.io.logs import LogSet, all_log_paths, ground_truth_tables, open_logs
 from cvslam_cli.io.run_layout import (
     DEADRECKONING,
     EVAL,
@@ -140,7 +140,7 @@ def _gt_from_files(
 
 def _logs(cfg: Config, run_dir: Path, log_paths: Sequence[Path]) -> tuple[LogSet, list[Path]]:
     _, metas = feature_frame_index(run_dir)
-    logs_used = list(log_paths) or RunLayout(run_dir).find_logs(metas)
+    logs_used = all_log_paths(list(log_paths) or RunLayout(run_dir).find_logs(metas), cfg.logs)
     return open_logs(logs_used, cfg.logs), logs_used
 
 

@@ -10,9 +10,10 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import tempfile
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
 
 import zstandard
@@ -26,6 +27,25 @@ LOG_KINDS = (
     "or an .mcap.zstd"
 )
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+_VEHICLE_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+
+
+def split_log_args(args: Sequence[str | Path]) -> tuple[list[Path], dict[str, Path]]:
+    """(plain log paths, vehicle -> log) of command-line log arguments: `NAME=PATH` binds the
+    log at PATH to vehicle NAME (unless a file of that whole name exists)."""
+    paths: list[Path] = []
+    bound: dict[str, Path] = {}
+    for arg in map(str, args):
+        name, sep, rest = arg.partition("=")
+        if sep and rest and _VEHICLE_NAME.match(name) and not Path(arg).exists():
+            if name in bound:
+                raise LogError(f"{arg}: vehicle {name} is already bound to {bound[name]}")
+            bound[name] = Path(rest)
+        else:
+            paths.append(Path(arg))
+    return paths, bound
 
 
 def open_log(path: Path) -> LogSource:

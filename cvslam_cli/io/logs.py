@@ -18,6 +18,7 @@ Memory is bounded by the reorder window and the pairing tolerance, not by the lo
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -55,6 +56,7 @@ class LogSet:
         self.problems = Problems(strict=strict)
         self._topics = map_topics(self.sources, cfg, self.names)
         self.topic_infos: dict[str, TopicInfo] = self._topics.infos
+        self._source_of: dict[tuple[str, str], tuple[int, set[int]]] = {}
         self.vehicles = self._topics.vehicles
         self.stats = {name: VehicleStats() for name in self.vehicles}
         self._calibration = Calibration(self.sources, self._topics, cfg, self.names)
@@ -90,20 +92,17 @@ class LogSet:
                     f"{', '.join(self.vehicles) or 'none'})"
                 )
         roles = set(roles)
-        topics = {
-            self.vehicles[n].topic(r)
-            for n in selected
-            for r in self.vehicles[n].present
-            if r in roles
-        }
         stereo = [n for n in selected if self.vehicles[n].has_stereo]
         rigs = self._calibration.resolve(stereo if roles & set(_IMAGE_ROLES) else [])
         window = ReorderWindow(int(self.cfg.reorder_window_ms * 1e6))
-        pairer = StereoPairer(
-            int(self.cfg.stereo_pair_tolerance_ms * 1e6), self.stats, self._topics.role_of
-        )
-        for raw in merged_messages(self.sources, self._topics.logs_of, topics):
-            rec = self._convert(raw, rigs)
+        image_roles = {
+            (v.name, v.topic(r)): r for v in self.vehicles.values() for r in _IMAGE_ROLES
+        }
+        pairer = StereoPairer(int(self.cfg.stereo_pair_tolerance_ms * 1e6), self.stats, image_roles)
+        self._source_of: dict[tuple[str, str], tuple[int, set[int]]] = {}
+        wanted = self._topics.wanted(selected, roles)
+        for i, raw in merged_messages(self.sources, wanted):
+            rec = self._convert(i, raw, rigs)
             if rec is None:
                 continue
             window.push(rec)
@@ -116,10 +115,12 @@ class LogSet:
         self.problems.add_source_warnings(self.sources, log_warning=False)
 
     def _convert(
-        self, raw: RawMessage, rigs: dict[str, StereoRig | CvslamError]
+        self, i: int, raw: RawMessage, rigs: dict[str, StereoRig | CvslamError]
     ) -> Record | ImageRecord | None:
-        """The record of one message (None: counted only, or dropped), its stamp observed."""
-        vehicle, role = self._topics.role_of[raw.topic]
+        """The record of one message of log `i` (None: counted only, or dropped), its stamp
+        observed."""
+        vehicle, role = self._topics.role_of[(i, raw.topic)]
+        self._check_one_log_at_a_time(i, vehicle, raw.topic)
         ts = self.stats[vehicle].topic(raw.topic, role, raw.schema_name)
         stamp_ns = stamp_ns_of(raw.msg)
         if not ts.observe(stamp_ns) and ts.backwards == 1:
@@ -137,6 +138,23 @@ class LogSet:
         if rec is None:
             ts.dropped_nonfinite += 1
         return rec
+
+    def _check_one_log_at_a_time(self, i: int, vehicle: str, topic: str) -> None:
+        """A vehicle's topic may come from several logs one after the other (a recording in
+        parts), never from two at once: messages merged by log time that come from a log
+        again after another log's began mean the logs overlap in time, an error."""
+        key = (vehicle, topic)
+        last, done = self._source_of.get(key, (i, set()))
+        if i != last:
+            if i in done:
+                self.problems.report(
+                    "error",
+                    f"{self.sources[i].name} and {self.sources[last].name}: both hold "
+                    f"{topic} for vehicle {vehicle} over the same time; bind each log to its "
+                    f"own vehicle (NAME=PATH, or logs.vehicles.NAME.log)",
+                )
+            done = done | {last}
+        self._source_of[key] = (i, done)
 
     def _image(
         self,
@@ -166,13 +184,37 @@ class LogSet:
             error = _calibration_error(rigs[vehicle], role, img, f"{self.names}: {raw.topic}")
             if error is not None:
                 self.problems.report("error", str(error))
-        return ImageRecord(stamp_ns, img, enc, str(raw.msg.header.frame_id), raw.topic)
+        return ImageRecord(stamp_ns, img, enc, str(raw.msg.header.frame_id), raw.topic, vehicle)
+
+
+def all_log_paths(paths: Sequence[Path], cfg: LogsConfig) -> list[Path]:
+    """`paths` and the logs bound to vehicles (`logs.vehicles.<name>.log`), each once."""
+    out: list[Path] = []
+    seen: set[Path] = set()
+    for p in [*map(Path, paths), *(Path(v.log) for v in cfg.vehicles.values() if v.log)]:
+        if p.resolve() not in seen:
+            seen.add(p.resolve())
+            out.append(p)
+    return out
+
+
+def bind_logs(cfg: LogsConfig, bound: dict[str, Path]) -> LogsConfig:
+    """`cfg` with each vehicle of `bound` bound to its log (`logs.vehicles.<name>.log`; a
+    vehicle not configured starts from `logs.vehicle_defaults`)."""
+    if not bound:
+        return cfg
+    vehicles = dict(cfg.vehicles)
+    for name, path in bound.items():
+        base = vehicles.get(name, cfg.vehicle_defaults)
+        vehicles[name] = dataclasses.replace(base, log=str(path))
+    return dataclasses.replace(cfg, vehicles=vehicles)
 
 
 def open_logs(paths: Sequence[Path], cfg: LogsConfig, *, strict: bool = True) -> LogSet:
-    """The `LogSet` of the logs at `paths`, each opened by the reader its kind needs
-    (`log_open.py`: MCAP, rosbag2 folder, sqlite3, ROS 1, compressed MCAP)."""
-    return LogSet([open_log(Path(p)) for p in paths], cfg, strict=strict)
+    """The `LogSet` of the logs at `paths` and those bound to vehicles (`all_log_paths`), each
+    opened by the reader its kind needs (`log_open.py`: MCAP, rosbag2 folder, sqlite3,
+    ROS 1, compressed MCAP)."""
+    return LogSet([open_log(p) for p in all_log_paths(paths, cfg)], cfg, strict=strict)
 
 
 def _calibration_error(
