@@ -183,7 +183,7 @@ class MotionConfig:
     """Motion models and their process noise."""
 
     model: Literal["auto", "ins", "odometry", "constant_velocity"] = "auto"
-    fallback_constant_velocity: bool = False
+    fallback_constant_velocity: bool = True
     imu_biases: bool = True
     accel_noise_density: float = opt(2.0e-3, lo=0.0, lo_open=True)
     gyro_noise_density: float = opt(1.6968e-4, lo=0.0, lo_open=True)

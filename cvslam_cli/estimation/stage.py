@@ -158,22 +158,28 @@ def _read_motion(logs: LogSet, vehicles: list[str]) -> dict[str, _Motion]:
     return out
 
 
+def _auto_model(vehicle: str, motion: _Motion, fallback_cv: bool) -> tuple[str, str]:
+    """The motion model the logs call for, and why: IMU -> ins, wheel odometry -> odometry,
+    neither -> constant velocity (unless fuse.motion.fallback_constant_velocity is false)."""
+    if len(motion.imu_stamps_ns):
+        return "ins", "IMU in the logs"
+    if len(motion.odom_stamps_ns):
+        return "odometry", "wheel odometry in the logs, no IMU"
+    if fallback_cv:
+        return "constant_velocity", "no IMU or odometry in the logs"
+    raise CvslamError(
+        f"vehicle {vehicle}: no IMU or odometry messages in the logs and "
+        "fuse.motion.fallback_constant_velocity is false; set it to true (or "
+        "fuse.motion.model=constant_velocity) to track it with a constant-velocity model"
+    )
+
+
 def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> MotionModel:
     mc = cfg.motion
     kind = mc.model
     if kind == "auto":
-        if len(motion.imu_stamps_ns):
-            kind = "ins"
-        elif len(motion.odom_stamps_ns):
-            kind = "odometry"
-        elif mc.fallback_constant_velocity:
-            kind = "constant_velocity"
-        else:
-            raise CvslamError(
-                f"vehicle {vehicle}: no IMU or odometry messages in the logs; set "
-                "fuse.motion.model=constant_velocity (or fuse.motion.fallback_constant_velocity"
-                "=true) to track it with a constant-velocity model"
-            )
+        kind, why = _auto_model(vehicle, motion, mc.fallback_constant_velocity)
+        log.info("%s: motion model %s (%s; fuse.motion.model to choose)", vehicle, kind, why)
     if kind == "ins":
         if not len(motion.imu_stamps_ns):
             raise CvslamError(f"vehicle {vehicle}: fuse.motion.model is ins but no IMU messages")
