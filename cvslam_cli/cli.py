@@ -61,14 +61,35 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
         metavar="KEY.PATH=VALUE",
         help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 (repeatable).",
     )
+    @click.option(
+        "--calib",
+        "calibs",
+        multiple=True,
+        metavar="[VEHICLE=]FILE",
+        help="Kalibr camchain(-imucam).yaml: the stereo rig of every vehicle, or of VEHICLE "
+        "(with its image topics); applied after --config, before --set (repeatable).",
+    )
     @functools.wraps(func)
     def wrapper(
-        *args: Any, config_files: Sequence[Path], overrides: Sequence[str], **kwargs: Any
+        *args: Any,
+        config_files: Sequence[Path],
+        overrides: Sequence[str],
+        calibs: Sequence[str],
+        **kwargs: Any,
     ) -> Any:
-        cfg = load_config(config_files, overrides)
+        cfg = load_config(config_files, overrides, [_calib_layer(c) for c in calibs])
         return func(*args, cfg=cfg, **kwargs)
 
     return wrapper
+
+
+def _calib_layer(spec: str) -> tuple[str, dict[str, Any]]:
+    """The config layer of `--calib [VEHICLE=]FILE` (a Kalibr calibration)."""
+    from cvslam_cli.io.importers.kalibr import kalibr_config
+
+    name, sep, rest = spec.partition("=")
+    vehicle, path = (name, Path(rest)) if sep and not Path(spec).exists() else (None, Path(spec))
+    return f"--calib {spec}", kalibr_config(path, vehicle)
 
 
 _FORCE_STAGE = click.option(
@@ -151,7 +172,8 @@ def info(logs: tuple[Path, ...], as_json: bool, cfg: Config) -> None:
 
 @cli.group(name="import")
 def import_() -> None:
-    """Convert a dataset folder (EuRoC, KITTI) into a cvslam MCAP log."""
+    """Convert a dataset folder (EuRoC, KITTI) into a cvslam MCAP log, or a Kalibr
+    calibration into a rig config."""
 
 
 def _import_common(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -223,6 +245,31 @@ def import_kitti_cmd(
         ),
         cfg,
     )
+
+
+@import_.command(name="kalibr")
+@click.argument("camchain", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Config file to write (use it with --config).",
+)
+@click.option(
+    "--vehicle",
+    default=None,
+    help="Write the rig (and Kalibr's image topics) for this vehicle only "
+    "(logs.vehicles.VEHICLE); default: every vehicle's rig (logs.vehicle_defaults.rig).",
+)
+def import_kalibr_cmd(camchain: Path, output: Path, vehicle: str | None) -> None:
+    """Turn a Kalibr CAMCHAIN (camchain-imucam.yaml) into a cvslam rig config: cam0/cam1 as
+    the left/right camera, T_body_cam = inv(T_cam_imu), radtan as plumb_bob, the time shift as
+    rig.camera_time_offset_ns."""
+    from cvslam_cli.io.importers.kalibr import kalibr_config_text
+
+    write_text_atomic(output, kalibr_config_text(camchain, vehicle))
+    log.info("wrote %s (use it with --config %s)", output, output)
 
 
 # ----------------------------------------------------------------------------- simulate

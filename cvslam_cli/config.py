@@ -76,7 +76,7 @@ class CameraConfig:
     fy: float = 0.0
     cx: float = 0.0
     cy: float = 0.0
-    distortion_model: Literal["plumb_bob", "equidistant", "none"] = "none"
+    distortion_model: Literal["plumb_bob", "radtan", "equidistant", "none"] = "none"
     distortion: tuple[float, ...] = ()
     T_body_cam: tuple[float, ...] = IDENTITY_4X4
 
@@ -87,11 +87,14 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class RigConfig:
-    """Stereo rig of one vehicle: fallback calibration and TF frame names."""
+    """Stereo rig of one vehicle: fallback calibration and TF frame names.
+    `camera_time_offset_ns` is added to image stamps to put them on the IMU's clock (Kalibr's
+    `timeshift_cam_imu`: t_imu = t_cam + shift)."""
 
     body_frame: str = "{vehicle}/base_link"
     left: CameraConfig = opt(CameraConfig())
     right: CameraConfig = opt(CameraConfig())
+    camera_time_offset_ns: int = 0
 
 
 @dataclass(frozen=True)
@@ -537,13 +540,17 @@ CONFIG_FILE = "a config file"
 
 
 def load_config(
-    files: typing.Sequence[Path | str] = (), overrides: typing.Sequence[str] = ()
+    files: typing.Sequence[Path | str] = (),
+    overrides: typing.Sequence[str] = (),
+    layers: typing.Sequence[tuple[str, dict[str, Any]]] = (),
 ) -> Config:
-    """Build the resolved config from config files and `key.path=value` overrides."""
+    """Build the resolved config from config files, then `layers` ((name for messages,
+    mapping), e.g. a Kalibr calibration), then `key.path=value` overrides."""
     merged: dict[str, Any] = {}
     sources: list[tuple[str, dict[str, Any]]] = [
         (str(f), read_yaml_mapping(Path(f), CONFIG_FILE, ConfigError, empty_ok=True)) for f in files
     ]
+    sources.extend(layers)
     for text in overrides:
         parts, value = parse_override(text)
         sources.append((f"--set {text}", _nest(parts, value)))

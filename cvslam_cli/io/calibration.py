@@ -25,6 +25,18 @@ from cvslam_cli.geometry.rotations import invert_T, make_T, quat_xyzw_to_matrix
 from cvslam_cli.io.mcap_source import LogSource, RawMessage
 from cvslam_cli.io.topic_map import LogTopics
 
+#: other names of the distortion models (Kalibr's radtan is ROS's plumb_bob)
+DISTORTION_ALIASES = {
+    "radtan": "plumb_bob",
+    "radial-tangential": "plumb_bob",
+    "fisheye": "equidistant",
+}
+
+
+def distortion_model_name(name: str) -> str:
+    """The ROS name of a distortion model given under another name ('' -> 'none')."""
+    return DISTORTION_ALIASES.get(name, name) or "none"
+
 
 def camera_from_info(msg: Any, source: str) -> CameraModel:
     """CameraModel from a decoded sensor_msgs/msg/CameraInfo."""
@@ -34,7 +46,7 @@ def camera_from_info(msg: Any, source: str) -> CameraModel:
         height=int(msg.height),
         K=np.asarray(msg.k, dtype=float).reshape(3, 3),
         D=np.asarray(msg.d, dtype=float),
-        distortion_model=str(msg.distortion_model) or "none",
+        distortion_model=distortion_model_name(str(msg.distortion_model)),
         R_rect=np.asarray(msg.r, dtype=float).reshape(3, 3),
         P=P if np.any(P) else None,
         frame_id=str(msg.header.frame_id),
@@ -50,7 +62,7 @@ def camera_from_config(cfg: CameraConfig, frame_id: str, source: str) -> CameraM
         height=cfg.height,
         K=K,
         D=np.asarray(cfg.distortion),
-        distortion_model=cfg.distortion_model,
+        distortion_model=distortion_model_name(cfg.distortion_model),
         T_body_cam=np.asarray(cfg.T_body_cam, dtype=float).reshape(4, 4),
         frame_id=frame_id,
         source=source,

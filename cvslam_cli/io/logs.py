@@ -130,6 +130,7 @@ class LogSet:
                 f"(first at stamp {stamp_ns} ns)",
             )
         if role in _IMAGE_ROLES:
+            stamp_ns += self.vehicles[vehicle].config.rig.camera_time_offset_ns
             return self._image(raw, vehicle, role, stamp_ns, ts, rigs)
         convert = CONVERTERS.get(role)
         if convert is None:

@@ -77,7 +77,9 @@ def _T_BS(sensor_yaml: Path) -> np.ndarray:
     return np.array(d["T_BS"]["data"], dtype=float).reshape(4, 4)
 
 
-def euroc_messages(mav0: Path, n_pairs: int, topics: Topics = Topics()) -> list[Item]:
+def euroc_messages(
+    mav0: Path, n_pairs: int, topics: Topics = Topics(), *, camera_info: bool = True
+) -> list[Item]:
     """The clip's first `n_pairs` stereo pairs, one CameraInfo per camera with the first
     pair, and its IMU samples up to the last pair, in log-time order."""
     stamps = [
@@ -98,20 +100,23 @@ def euroc_messages(mav0: Path, n_pairs: int, topics: Topics = Topics()) -> list[
             },
         )
     ]
+    if not camera_info:  # neither CameraInfo nor /tf_static: the calibration is the config's
+        items = []
     for side, cam, topic, info in (
         ("left", "cam0", topics.left, topics.left_info),
         ("right", "cam1", topics.right, topics.right_info),
     ):
         frame = f"uav1/{cam}"
         info_fields = _camera_fields(mav0 / cam / "sensor.yaml")
-        items.append(
-            Item(
-                info,
-                stamps[0],
-                "sensor_msgs/msg/CameraInfo",
-                {"stamp": stamps[0], "frame_id": frame, **info_fields},
+        if camera_info:
+            items.append(
+                Item(
+                    info,
+                    stamps[0],
+                    "sensor_msgs/msg/CameraInfo",
+                    {"stamp": stamps[0], "frame_id": frame, **info_fields},
+                )
             )
-        )
         for st in stamps:
             img = cv2.imread(str(mav0 / cam / "data" / f"{st}.png"), cv2.IMREAD_GRAYSCALE)
             h, w = img.shape
