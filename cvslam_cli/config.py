@@ -101,12 +101,15 @@ class RigConfig:
 class VehicleConfig:
     """One vehicle. `log`: the log file (or rosbag2 folder) holding this vehicle's topics,
     read with its topic names as they are (`NAME=PATH` on the command line; in YAML also the
-    shorthand `logs.vehicles: {NAME: PATH}`); empty: looked for in every log given."""
+    shorthand `logs.vehicles: {NAME: PATH}`); empty: looked for in every log given.
+    `ground_truth_frame`: the world frame of its ground truth (topic or `--gt` file), converted
+    to the nav frame once where it is read (geometry/nav_frames.py)."""
 
     kind: Literal["uav", "ugv"] = "uav"
     topics: TopicMap = opt(TopicMap())
     rig: RigConfig = opt(RigConfig())
     log: str = ""
+    ground_truth_frame: Literal["ned", "enu", "nwu", "camera"] = "ned"
 
 
 @dataclass(frozen=True)

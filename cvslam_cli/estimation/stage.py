@@ -221,6 +221,12 @@ def _initial_pose(
         raise CvslamError(f"vehicle {vehicle}: ground truth ends before the first frame")
     if i > 0 and t_min - gt.stamps_ns[i - 1] < gt.stamps_ns[i] - t_min:
         i -= 1  # the nearest sample (before the first frame is fine: the filter predicts)
+    if not np.all(np.isfinite(gt.q_nav_body_xyzw[i])):
+        raise CvslamError(
+            f"vehicle {vehicle}: the ground truth has positions only (PointStamped), no "
+            "initial attitude; give it with fuse.initial.poses.<vehicle> or set "
+            "fuse.initial.source=origin"
+        )
     R = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[i])
     euler = matrix_to_euler_zyx(R)
     j0, j1 = max(i - 1, 0), min(i + 1, len(gt) - 1)

@@ -27,6 +27,7 @@ import numpy as np
 from cvslam_cli.config import LogsConfig
 from cvslam_cli.errors import CvslamError, LogError
 from cvslam_cli.geometry.camera import StereoRig
+from cvslam_cli.geometry.nav_frames import pose_to_nav
 from cvslam_cli.io.calibration import Calibration, StaticTransforms
 from cvslam_cli.io.images import ImageDecodeError, decode_compressed, decode_raw
 from cvslam_cli.io.log_merge import ReorderWindow, merged_messages
@@ -138,6 +139,11 @@ class LogSet:
         rec = convert(vehicle, stamp_ns, raw.msg)
         if rec is None:
             ts.dropped_nonfinite += 1
+        elif isinstance(rec, PoseRecord):  # ground truth: its world frame -> nav, once
+            p, q = pose_to_nav(
+                rec.p_m, rec.q_xyzw, self.vehicles[vehicle].config.ground_truth_frame
+            )
+            rec = dataclasses.replace(rec, p_m=p, q_xyzw=q)
         return rec
 
     def _check_one_log_at_a_time(self, i: int, vehicle: str, topic: str) -> None:

@@ -26,6 +26,7 @@ from typing import Literal
 from cvslam_cli.config import LogsConfig, TopicMap, VehicleConfig
 from cvslam_cli.errors import LogError
 from cvslam_cli.io.mcap_source import LogSource, TopicInfo
+from cvslam_cli.io.ros_messages import GROUND_TRUTH_TYPES
 
 Role = Literal[
     "left_image", "right_image", "left_info", "right_info", "imu", "odom", "ground_truth"
@@ -46,7 +47,7 @@ EXPECTED_TYPES: dict[str, tuple[str, ...]] = {
     "right_info": ("sensor_msgs/msg/CameraInfo",),
     "imu": ("sensor_msgs/msg/Imu",),
     "odom": ("nav_msgs/msg/Odometry",),
-    "ground_truth": ("geometry_msgs/msg/PoseStamped",),
+    "ground_truth": GROUND_TRUTH_TYPES,
 }
 
 
