@@ -13,6 +13,7 @@ temporary folder renamed when complete (docs/fuse_outputs.md): per vehicle `<v>.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Sequence
@@ -67,7 +68,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
     write_result_mcap,
 )
-from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs
+from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, with_run_bindings
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
@@ -559,6 +560,7 @@ def run(
     layout = RunLayout(run_dir)
     out = layout.fuse(fuse_name(kind, single))
     files, features, metas = _load_features(layout)
+    cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
     logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
     rd = RunDir(run_dir)
     outputs = _outputs(out, list(features))

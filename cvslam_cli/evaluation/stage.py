@@ -16,6 +16,7 @@ Outputs, in `<run>/eval/` (written as a whole folder, atomically: `io/atomic.py`
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import logging
@@ -40,7 +41,13 @@ from cvslam_cli.geometry.nav_frames import table_to_nav
 from cvslam_cli.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
-from cvslam_cli.io.logs import LogSet, all_log_paths, ground_truth_tables, open_logs
+from cvslam_cli.io.logs import (
+    LogSet,
+    all_log_paths,
+    ground_truth_tables,
+    open_logs,
+    with_run_bindings,
+)
 from cvslam_cli.io.run_layout import (
     DEADRECKONING,
     EVAL,
@@ -132,6 +139,7 @@ def _gt_from_files(
 
 def _logs(cfg: Config, run_dir: Path, log_paths: Sequence[Path]) -> tuple[LogSet, list[Path]]:
     _, metas = feature_frame_index(run_dir)
+    cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
     logs_used = all_log_paths(list(log_paths) or RunLayout(run_dir).find_logs(metas), cfg.logs)
     return open_logs(logs_used, cfg.logs), logs_used
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cvslam_cli.config import LogsConfig
+from cvslam_cli.config import LogsConfig, VehicleConfig
 from cvslam_cli.errors import CvslamError, LogError
 from cvslam_cli.geometry.camera import StereoRig
 from cvslam_cli.geometry.nav_frames import pose_to_nav
@@ -35,12 +35,15 @@ from cvslam_cli.io.log_open import open_log
 from cvslam_cli.io.log_stats import Problems, TopicStats, VehicleStats
 from cvslam_cli.io.mcap_source import LogSource, RawMessage, TopicInfo
 from cvslam_cli.io.ros_messages import CONVERTERS, stamp_ns_of
+from cvslam_cli.io.run_layout import EXTRACT_STAGE
+from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.stereo_pairing import StereoPairer
 from cvslam_cli.io.topic_map import map_topics
 from cvslam_cli.records.log import ImageRecord, PoseRecord, Record
 from cvslam_cli.records.poses import PoseTable
 
 _IMAGE_ROLES = ("left_image", "right_image")
+_UNBOUND = VehicleConfig()
 
 
 class LogSet:
@@ -213,8 +216,22 @@ def bind_logs(cfg: LogsConfig, bound: dict[str, Path]) -> LogsConfig:
     vehicles = dict(cfg.vehicles)
     for name, path in bound.items():
         base = vehicles.get(name, cfg.vehicle_defaults)
-        vehicles[name] = dataclasses.replace(base, log=str(path))
+        vehicles[name] = dataclasses.replace(base, log=str(Path(path).resolve()))
     return dataclasses.replace(cfg, vehicles=vehicles)
+
+
+def with_run_bindings(cfg: LogsConfig, run_dir: Path) -> LogsConfig:
+    """`cfg` with the vehicle-to-log bindings `extract` recorded for the run in `run_dir`
+    (its `logs.vehicles.<name>.log`) for the vehicles `cfg` does not bind itself, so a later
+    stage reads each vehicle from its own log without being told again."""
+    recorded = RunDir(run_dir).load().get("stages", {}).get(EXTRACT_STAGE, {})
+    vehicles = recorded.get("config", {}).get("logs", {}).get("vehicles", {})
+    bound = {
+        name: Path(v["log"])
+        for name, v in vehicles.items()
+        if isinstance(v, dict) and v.get("log") and not cfg.vehicles.get(name, _UNBOUND).log
+    }
+    return bind_logs(cfg, bound)
 
 
 def open_logs(paths: Sequence[Path], cfg: LogsConfig, *, strict: bool = True) -> LogSet:

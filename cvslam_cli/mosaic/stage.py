@@ -37,7 +37,13 @@ from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.atomic import atomic_dir
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import read_map_csv
-from cvslam_cli.io.logs import LogSet, all_log_paths, ground_truth_tables, open_logs
+from cvslam_cli.io.logs import (
+    LogSet,
+    all_log_paths,
+    ground_truth_tables,
+    open_logs,
+    with_run_bindings,
+)
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
 from cvslam_cli.io.run_layout import (
     MERGED_MOSAIC,
@@ -495,6 +501,7 @@ def run(
     rd = RunDir(run_dir)
     frame_stamps_ns, metas = feature_frame_index(run_dir)
     vehicles = sorted(frame_stamps_ns)
+    cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
     logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
     fuse = layout.fuse(mc.fuse_dir)
     traj_files = _fuse_inputs(fuse, vehicles, mc.source)

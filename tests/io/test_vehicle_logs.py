@@ -121,3 +121,22 @@ def test_cli_info_reads_two_robots_and_exits_1_when_no_vehicle(two_robots, cvsla
     assert res.code == 1
     assert "no vehicle found; topics seen: /cam0/camera_info" in res.err
     assert "/imu0 (sensor_msgs/msg/Imu)" in res.err
+
+
+@pytest.mark.realdata
+def test_later_stages_read_each_vehicle_from_the_log_extract_bound_it_to(
+    two_robots, cvslam, tmp_path
+):
+    from cvslam_cli.io.logs import with_run_bindings
+
+    sets = [a for s in EUROC_NAMES for a in ("--set", s)]
+    run = tmp_path / "run"
+    res = cvslam("-q", "extract", f"robot1={two_robots['a']}", f"robot2={two_robots['b']}",
+                 "-o", run, *sets)  # fmt: skip
+    assert res.code == 0, res.err
+    assert sorted(p.name for p in (run / "features").glob("*.npz")) == ["robot1.npz", "robot2.npz"]
+    plain = load_config(overrides=EUROC_NAMES).logs
+    assert open_logs([two_robots["a"]], plain).vehicles == {}  # told nothing: no vehicle
+    cfg = with_run_bindings(plain, run)
+    assert cfg.vehicles["robot2"].log == str(two_robots["b"].resolve())
+    assert list(open_logs([], cfg).vehicles) == ["robot1", "robot2"]
