@@ -137,7 +137,7 @@ def write_resolved_config(cfg: Config, path: Path) -> Path:
 @click.option("-v", "--verbose", count=True, help="More output (debug messages).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
 def cli(verbose: int, quiet: bool) -> None:
-    """Cooperative stereo visual SLAM from ROS 2 MCAP logs (no ROS install needed)."""
+    """Cooperative stereo visual SLAM from ROS 2 and ROS 1 bags (no ROS install needed)."""
     _setup_logging(verbose, quiet)
 
 
