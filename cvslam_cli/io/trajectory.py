@@ -87,14 +87,21 @@ def read_tum(path: Path, error: type[CvslamError] = CvslamError) -> PoseTable:
         lines.append(no)
     check_stamps_increasing(path, stamps, lines, error)
     arr = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
-    norms = np.linalg.norm(arr[:, 3:], axis=1)
+    _check_unit(path, arr[:, 3:], lines, "qx qy qz qw", error)
+    return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3].copy(), arr[:, 3:].copy())
+
+
+def _check_unit(
+    path: Path, q: F64, lines: list[int], columns: str, error: type[CvslamError]
+) -> None:
+    """`error` naming the file and line of the first quaternion whose norm is not 1."""
+    norms = np.linalg.norm(q, axis=1)
     bad = first_non_unit(norms)
     if bad is not None:
         raise error(
             f"{path}: line {lines[bad]}: quaternion norm {norms[bad]:.4f} is not 1 "
-            "(expected qx qy qz qw in columns 5-8)"
+            f"(expected {columns} in columns 5-8)"
         )
-    return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3].copy(), arr[:, 3:].copy())
 
 
 def write_kitti(path: Path, table: PoseTable) -> None:
@@ -178,13 +185,7 @@ def read_euroc_csv(path: Path, error: type[CvslamError] = CvslamError) -> PoseTa
     check_stamps_increasing(path, stamps, lines, error)
     arr = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
     q_xyzw = arr[:, [4, 5, 6, 3]]
-    norms = np.linalg.norm(q_xyzw, axis=1)
-    bad = first_non_unit(norms)
-    if bad is not None:
-        raise error(
-            f"{path}: line {lines[bad]}: quaternion norm {norms[bad]:.4f} is not 1 "
-            "(expected qw qx qy qz in columns 5-8)"
-        )
+    _check_unit(path, q_xyzw, lines, "qw qx qy qz", error)
     return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3].copy(), q_xyzw.copy())
 
 

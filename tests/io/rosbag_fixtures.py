@@ -227,14 +227,17 @@ def write_rosbag2(
         mode = CompressionMode.FILE if compression == "file" else CompressionMode.MESSAGE
         w.set_compression(mode, CompressionFormat.ZSTD)
     with w:
-        conns: dict[str, Any] = {}
-        for it in items:
-            if it.topic not in conns:
-                conns[it.topic] = w.add_connection(it.topic, it.msgtype, typestore=ROS2)
-            w.write(
-                conns[it.topic], it.log_time_ns, ROS2.serialize_cdr(_message(ROS2, it), it.msgtype)
-            )
+        _write_all(w, items, ROS2, ROS2.serialize_cdr)
     return out
+
+
+def _write_all(w: Any, items: list[Item], store: Any, serialize: Any) -> None:
+    """Every item through writer `w`, one connection per topic, serialised by `serialize`."""
+    conns: dict[str, Any] = {}
+    for it in items:
+        if it.topic not in conns:
+            conns[it.topic] = w.add_connection(it.topic, it.msgtype, typestore=store)
+        w.write(conns[it.topic], it.log_time_ns, serialize(_message(store, it), it.msgtype))
 
 
 def write_split_rosbag2(items: list[Item], out: Path, tmp: Path) -> Path:
@@ -276,13 +279,7 @@ def write_split_rosbag2(items: list[Item], out: Path, tmp: Path) -> Path:
 def write_ros1(items: list[Item], out: Path) -> Path:
     """A ROS 1 bag (ROS 1 Noetic definitions: CameraInfo's D K R P, the header's seq)."""
     with Writer1(out) as w:
-        conns: dict[str, Any] = {}
-        for it in items:
-            if it.topic not in conns:
-                conns[it.topic] = w.add_connection(it.topic, it.msgtype, typestore=ROS1)
-            w.write(
-                conns[it.topic], it.log_time_ns, ROS1.serialize_ros1(_message(ROS1, it), it.msgtype)
-            )
+        _write_all(w, items, ROS1, ROS1.serialize_ros1)
     return out
 
 
