@@ -1,13 +1,19 @@
 """From log files to per-vehicle, time-ordered records.
 
-`LogSet` takes one or more `LogSource`s and the `logs` config section and composes:
-- `topic_map.py`: which topics belong to which vehicle, in which role (explicit
-  `logs.vehicles`, or discovered from the topic templates of `logs.vehicle_defaults`);
+`open_logs` opens each log with the reader its kind needs (`log_open.py`), the logs bound to
+vehicles (`logs.vehicles.<name>.log`, `NAME=PATH` on the command line) included. `LogSet`
+takes one or more `LogSource`s and the `logs` config section and composes:
+- `topic_map.py`: which topics of which log belong to which vehicle, in which role (a log
+  bound to a vehicle, explicit `logs.vehicles`, or discovered from the topic templates of
+  `logs.vehicle_defaults`); one vehicle's topic coming from two logs over the same time is
+  an error;
 - `calibration.py`: each vehicle's stereo rig (CameraInfo, rig config, `/tf_static`),
   resolved once, before its images stream;
 - `log_merge.py`: the logs merged by log time and put in header-stamp order by a bounded
   reorder window; `ros_messages.py`: messages -> typed records (`ImuSample`,
-  `OdometryRecord`, `PoseRecord`; images decoded by `images.py`);
+  `OdometryRecord`, `PoseRecord`, its world frame converted to NED by
+  `geometry/nav_frames.py`; images decoded by `images.py`, their stamps moved by the rig's
+  `camera_time_offset_ns`);
 - `stereo_pairing.py`: left and right images whose stamps differ by at most the tolerance
   paired into `StereoFrame`s;
 - `log_stats.py`: per-topic statistics (counts, rates, gaps, stamps going backwards, samples
@@ -103,7 +109,7 @@ class LogSet:
             (v.name, v.topic(r)): r for v in self.vehicles.values() for r in _IMAGE_ROLES
         }
         pairer = StereoPairer(int(self.cfg.stereo_pair_tolerance_ms * 1e6), self.stats, image_roles)
-        self._source_of: dict[tuple[str, str], tuple[int, set[int]]] = {}
+        self._source_of = {}
         wanted = self._topics.wanted(selected, roles)
         for i, raw in merged_messages(self.sources, wanted):
             rec = self._convert(i, raw, rigs)
