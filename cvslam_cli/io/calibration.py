@@ -5,8 +5,8 @@ the rig config (`logs.vehicles.<name>.rig.left/right`, which `--calib` fills fro
 file; distortion names like Kalibr's `radtan` mapped to ROS's). Its extrinsics (T_body_cam)
 come from `/tf_static` (of the vehicle's own log when it is bound to one, else of the logs no
 vehicle is bound to) when that links the vehicle's body frame to the camera's frame, else
-from the rig config; a rectified pair with no extrinsics at all gets its right camera from the rectified
-right projection matrix (the baseline along the left camera's x). `Calibration` resolves a
+from the rig config; a rectified pair with no extrinsics at all gets its right camera from the
+rectified right projection matrix (the baseline along the left camera's x). `Calibration` resolves a
 vehicle's rig once and keeps the outcome (the rig, or the error saying why there is none), so
 streaming never goes back to the logs for it.
 """
