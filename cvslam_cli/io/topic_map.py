@@ -109,8 +109,8 @@ class LogTopics:
 def map_topics(sources: Sequence[LogSource], cfg: LogsConfig, names: str) -> LogTopics:
     """The `LogTopics` of `sources` (`names`: the logs' names, for messages); LogError for a
     topic whose type differs between logs and for every mapping problem (module docstring)."""
-    infos, logs_of = _merge_topics(sources)
     bound = _bound_sources(sources, cfg)
+    infos, logs_of = _merge_topics(sources, same_types=not bound)
     vehicles: dict[str, VehicleTopics] = {}
     for name, i in sorted(bound.items()):
         vehicles[name] = _bound_vehicle(name, cfg.vehicles[name], i, sources[i], cfg)
@@ -215,14 +215,17 @@ def _mapping(v: VehicleTopics, role: str) -> str:
 
 
 def _merge_topics(
-    sources: Sequence[LogSource],
+    sources: Sequence[LogSource], *, same_types: bool = True
 ) -> tuple[dict[str, TopicInfo], dict[str, list[int]]]:
+    """Every topic of `sources` (message counts summed) and the logs holding it; with
+    `same_types`, LogError for a topic whose type differs between logs (logs bound to
+    different vehicles may differ: their topics are never merged)."""
     infos: dict[str, TopicInfo] = {}
     logs_of: dict[str, list[int]] = {}
     for i, src in enumerate(sources):
         for name, info in src.topics().items():
             old = infos.get(name)
-            if old is not None and old.schema_name != info.schema_name:
+            if same_types and old is not None and old.schema_name != info.schema_name:
                 raise LogError(
                     f"{src.name}: {name}: type {info.schema_name} differs from "
                     f"{old.schema_name} in another log"

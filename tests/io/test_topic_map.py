@@ -91,3 +91,19 @@ def test_a_topic_of_two_vehicles_or_of_the_wrong_type_is_an_error():
         _map(_Listing({"/uav1/imu": IMAGE}))
     with pytest.raises(LogError, match=r"y.mcap: /uav1/imu: type .*Image differs from .*Imu"):
         _map(_Listing({"/uav1/imu": IMU}), _Listing({"/uav1/imu": IMAGE}, name="y.mcap"))
+
+
+def test_logs_bound_to_two_vehicles_may_type_a_topic_differently():
+    pose, point = "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PointStamped"
+    a = _Listing({"/gt": pose, "/imu": IMU}, name="a.bag")
+    b = _Listing({"/gt": point, "/imu": IMU}, name="b.bag")
+    names = [
+        "logs.vehicle_defaults.topics.ground_truth=/gt",
+        "logs.vehicle_defaults.topics.imu=/imu",
+    ]
+    topics = _map(a, b, overrides=[*names, "logs.vehicles={r1: a.bag, r2: b.bag}"])
+    assert topics.vehicles["r1"].infos["ground_truth"].schema_name == pose
+    assert topics.vehicles["r2"].infos["ground_truth"].schema_name == point
+    assert topics.role_of[(1, "/gt")] == ("r2", "ground_truth")
+    with pytest.raises(LogError, match=r"b\.bag: /gt: type .*PointStamped differs"):
+        _map(a, b, overrides=[*names, "logs.vehicles.r1.kind=uav"])
