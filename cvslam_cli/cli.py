@@ -61,14 +61,35 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
         metavar="KEY.PATH=VALUE",
         help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 (repeatable).",
     )
+    @click.option(
+        "--calib",
+        "calibs",
+        multiple=True,
+        metavar="[VEHICLE=]FILE",
+        help="Kalibr camchain(-imucam).yaml: the stereo rig of every vehicle, or of VEHICLE "
+        "(with its image topics); applied after --config, before --set (repeatable).",
+    )
     @functools.wraps(func)
     def wrapper(
-        *args: Any, config_files: Sequence[Path], overrides: Sequence[str], **kwargs: Any
+        *args: Any,
+        config_files: Sequence[Path],
+        overrides: Sequence[str],
+        calibs: Sequence[str],
+        **kwargs: Any,
     ) -> Any:
-        cfg = load_config(config_files, overrides)
+        cfg = load_config(config_files, overrides, [_calib_layer(c) for c in calibs])
         return func(*args, cfg=cfg, **kwargs)
 
     return wrapper
+
+
+def _calib_layer(spec: str) -> tuple[str, dict[str, Any]]:
+    """The config layer of `--calib [VEHICLE=]FILE` (a Kalibr calibration)."""
+    from cvslam_cli.io.importers.kalibr import kalibr_config
+
+    name, sep, rest = spec.partition("=")
+    vehicle, path = (name, Path(rest)) if sep and not Path(spec).exists() else (None, Path(spec))
+    return f"--calib {spec}", kalibr_config(path, vehicle)
 
 
 _FORCE_STAGE = click.option(
@@ -90,9 +111,19 @@ def _log_option(what: str) -> Callable[..., Any]:
         "--log",
         "log_paths",
         multiple=True,
-        type=click.Path(dir_okay=False, path_type=Path),
-        help=f"Log with {what} (repeatable); default: the logs the features came from.",
+        type=click.Path(path_type=Path),
+        help=f"Log with {what} (repeatable; NAME=PATH: the log of vehicle NAME); default: the "
+        "logs the features came from.",
     )
+
+
+def bound_logs(logs: Sequence[Path], cfg: Config) -> tuple[list[Path], Config]:
+    """(plain log paths, `cfg` with the `NAME=PATH` arguments bound as logs.vehicles.NAME.log)."""
+    from cvslam_cli.io.log_open import split_log_args
+    from cvslam_cli.io.logs import bind_logs
+
+    paths, bound = split_log_args(logs)
+    return paths, dataclasses.replace(cfg, logs=bind_logs(cfg.logs, bound))
 
 
 def write_resolved_config(cfg: Config, path: Path) -> Path:
@@ -106,7 +137,7 @@ def write_resolved_config(cfg: Config, path: Path) -> Path:
 @click.option("-v", "--verbose", count=True, help="More output (debug messages).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
 def cli(verbose: int, quiet: bool) -> None:
-    """Cooperative stereo visual SLAM from ROS 2 MCAP logs (no ROS install needed)."""
+    """Cooperative stereo visual SLAM from ROS 2 and ROS 1 bags (no ROS install needed)."""
     _setup_logging(verbose, quiet)
 
 
@@ -120,12 +151,16 @@ def cli(verbose: int, quiet: bool) -> None:
 def info(logs: tuple[Path, ...], as_json: bool, cfg: Config) -> None:
     """Summarise LOG... per vehicle: topics, rates, stereo pairs, calibration, problems.
 
-    Exits 1 when a problem that would stop later stages is found (after printing the report).
+    A LOG is an .mcap file, a rosbag2 folder, a .db3 or a ROS 1 .bag; NAME=LOG reads LOG as
+    vehicle NAME's (its topic names as they are). Exits 1 when a problem that would stop later
+    stages is found, or no vehicle is (after printing the report).
     """
     from cvslam_cli.info import first_error, inspect_logs, render_text
-    from cvslam_cli.io.mcap_source import McapLogSource
+    from cvslam_cli.io.log_open import open_log
+    from cvslam_cli.io.logs import all_log_paths
 
-    report = inspect_logs([McapLogSource(p) for p in logs], cfg)
+    paths, cfg = bound_logs(logs, cfg)
+    report = inspect_logs([open_log(p) for p in all_log_paths(paths, cfg.logs)], cfg)
     click.echo(json.dumps(report, indent=2) if as_json else render_text(report))
     err = first_error(report)
     if err:
@@ -137,7 +172,8 @@ def info(logs: tuple[Path, ...], as_json: bool, cfg: Config) -> None:
 
 @cli.group(name="import")
 def import_() -> None:
-    """Convert a dataset folder (EuRoC, KITTI) into a cvslam MCAP log."""
+    """Convert a dataset folder (EuRoC, KITTI) into a cvslam MCAP log, or a Kalibr
+    calibration into a rig config."""
 
 
 def _import_common(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -209,6 +245,31 @@ def import_kitti_cmd(
         ),
         cfg,
     )
+
+
+@import_.command(name="kalibr")
+@click.argument("camchain", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Config file to write (use it with --config).",
+)
+@click.option(
+    "--vehicle",
+    default=None,
+    help="Write the rig (and Kalibr's image topics) for this vehicle only "
+    "(logs.vehicles.VEHICLE); default: every vehicle's rig (logs.vehicle_defaults.rig).",
+)
+def import_kalibr_cmd(camchain: Path, output: Path, vehicle: str | None) -> None:
+    """Turn a Kalibr CAMCHAIN (camchain-imucam.yaml) into a cvslam rig config: cam0/cam1 as
+    the left/right camera, T_body_cam = inv(T_cam_imu), radtan as plumb_bob, the time shift as
+    rig.camera_time_offset_ns."""
+    from cvslam_cli.io.importers.kalibr import kalibr_config_text
+
+    write_text_atomic(output, kalibr_config_text(camchain, vehicle))
+    log.info("wrote %s (use it with --config %s)", output, output)
 
 
 # ----------------------------------------------------------------------------- simulate
@@ -319,11 +380,13 @@ def simulate(
 @config_options
 def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cfg: Config) -> None:
     """Adaptive SIFT + stereo-constrained matching on every stereo frame of LOG...
+    (NAME=LOG: the log of vehicle NAME).
 
     Writes RUN_DIR/features/<vehicle>.npz (docs/feature_format.md) and
     <vehicle>_stats.csv, and records the stage in RUN_DIR/run.yaml.
     """
-    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
+    paths, cfg = bound_logs(logs, cfg)
+    do_extract(cfg, paths, run_dir, workers=workers, force=force)
 
 
 def do_extract(
@@ -393,7 +456,8 @@ def fuse(
     Writes trajectories, dead reckoning, pose covariances, the landmark map, timeline,
     events and result.mcap to RUN_DIR/fuse (docs/fuse_outputs.md).
     """
-    do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=log_paths, force=force)
+    paths, cfg = bound_logs(log_paths, cfg)
+    do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=paths, force=force)
 
 
 def do_fuse(
@@ -486,7 +550,8 @@ def mosaic(
     Writes <vehicle>.png, all.png (with .pgw world files) and *_overlay.png to RUN_DIR/mosaic
     (docs/mosaic.md).
     """
-    do_mosaic(cfg, run_dir, source=source, gsd_m=gsd_m, log_paths=log_paths, force=force)
+    paths, cfg = bound_logs(log_paths, cfg)
+    do_mosaic(cfg, run_dir, source=source, gsd_m=gsd_m, log_paths=paths, force=force)
 
 
 def do_mosaic(
@@ -579,7 +644,8 @@ def eval_cmd(
     """
     if align is not None:
         cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, align=align))
-    do_eval(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+    paths, cfg = bound_logs(log_paths, cfg)
+    do_eval(cfg, run_dir, gt=gt, log_paths=paths, force=force)
 
 
 def do_eval(
@@ -615,9 +681,10 @@ def run_cmd(
 ) -> None:
     """All stages on LOG... with one config: extract, fuse (cooperative NH-infinity and the
     comparisons in run.comparisons), mosaic, eval. Stages whose config and inputs are
-    unchanged are skipped.
+    unchanged are skipped. NAME=LOG: the log of vehicle NAME.
     """
-    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
+    paths, cfg = bound_logs(logs, cfg)
+    do_extract(cfg, paths, run_dir, workers=workers, force=force)
     do_fuse(cfg, run_dir, filter_kind="hinf", single=False, log_paths=(), force=force)
     for comparison in cfg.run.comparisons:
         filter_kind = "ekf" if comparison.startswith("ekf") else "hinf"

@@ -76,7 +76,7 @@ class CameraConfig:
     fy: float = 0.0
     cx: float = 0.0
     cy: float = 0.0
-    distortion_model: Literal["plumb_bob", "equidistant", "none"] = "none"
+    distortion_model: Literal["plumb_bob", "radtan", "equidistant", "none"] = "none"
     distortion: tuple[float, ...] = ()
     T_body_cam: tuple[float, ...] = IDENTITY_4X4
 
@@ -87,18 +87,29 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class RigConfig:
-    """Stereo rig of one vehicle: fallback calibration and TF frame names."""
+    """Stereo rig of one vehicle: fallback calibration and TF frame names.
+    `camera_time_offset_ns` is added to image stamps to put them on the IMU's clock (Kalibr's
+    `timeshift_cam_imu`: t_imu = t_cam + shift)."""
 
     body_frame: str = "{vehicle}/base_link"
     left: CameraConfig = opt(CameraConfig())
     right: CameraConfig = opt(CameraConfig())
+    camera_time_offset_ns: int = 0
 
 
 @dataclass(frozen=True)
 class VehicleConfig:
+    """One vehicle. `log`: the log file (or rosbag2 folder) holding this vehicle's topics,
+    read with its topic names as they are (`NAME=PATH` on the command line; in YAML also the
+    shorthand `logs.vehicles: {NAME: PATH}`); empty: looked for in every log given.
+    `ground_truth_frame`: the world frame of its ground truth (topic or `--gt` file), converted
+    to the nav frame once where it is read (geometry/nav_frames.py)."""
+
     kind: Literal["uav", "ugv"] = "uav"
     topics: TopicMap = opt(TopicMap())
     rig: RigConfig = opt(RigConfig())
+    log: str = ""
+    ground_truth_frame: Literal["ned", "enu", "nwu", "camera"] = "ned"
 
 
 @dataclass(frozen=True)
@@ -178,7 +189,7 @@ class MotionConfig:
     """Motion models and their process noise."""
 
     model: Literal["auto", "ins", "odometry", "constant_velocity"] = "auto"
-    fallback_constant_velocity: bool = False
+    fallback_constant_velocity: bool = True
     imu_biases: bool = True
     accel_noise_density: float = opt(2.0e-3, lo=0.0, lo_open=True)
     gyro_noise_density: float = opt(1.6968e-4, lo=0.0, lo_open=True)
@@ -479,9 +490,22 @@ def _expand_vehicles(raw: Mapping[str, Any]) -> dict[str, Any]:
         return dict(raw)
     vehicles = {
         name: deep_merge(defaults, v) if isinstance(v, Mapping) else v
-        for name, v in logs["vehicles"].items()
+        for name, v in _log_shorthand(logs["vehicles"]).items()
     }
     return {**raw, "logs": {**logs, "vehicles": vehicles}}
+
+
+def _log_shorthand(vehicles: Mapping[str, Any]) -> dict[str, Any]:
+    """`logs.vehicles: {robot1: path}` is `{robot1: {log: path}}`."""
+    return {k: {"log": v} if isinstance(v, str) else v for k, v in vehicles.items()}
+
+
+def _normalise(raw: Mapping[str, Any]) -> dict[str, Any]:
+    """A source with the `logs.vehicles` shorthand expanded (before merging sources)."""
+    logs = raw.get("logs")
+    if isinstance(logs, Mapping) and isinstance(logs.get("vehicles"), Mapping):
+        return {**raw, "logs": {**logs, "vehicles": _log_shorthand(logs["vehicles"])}}
+    return dict(raw)
 
 
 def to_dict(cfg: Any) -> Any:
@@ -521,17 +545,22 @@ CONFIG_FILE = "a config file"
 
 
 def load_config(
-    files: typing.Sequence[Path | str] = (), overrides: typing.Sequence[str] = ()
+    files: typing.Sequence[Path | str] = (),
+    overrides: typing.Sequence[str] = (),
+    layers: typing.Sequence[tuple[str, dict[str, Any]]] = (),
 ) -> Config:
-    """Build the resolved config from config files and `key.path=value` overrides."""
+    """Build the resolved config from config files, then `layers` ((name for messages,
+    mapping), e.g. a Kalibr calibration), then `key.path=value` overrides."""
     merged: dict[str, Any] = {}
     sources: list[tuple[str, dict[str, Any]]] = [
         (str(f), read_yaml_mapping(Path(f), CONFIG_FILE, ConfigError, empty_ok=True)) for f in files
     ]
+    sources.extend(layers)
     for text in overrides:
         parts, value = parse_override(text)
         sources.append((f"--set {text}", _nest(parts, value)))
     for name, raw in sources:
+        raw = _normalise(raw)
         # validate each source alone, so that an error names it
         build_dataclass(Config, _expand_vehicles(raw), "", name)
         merged = deep_merge(merged, raw)

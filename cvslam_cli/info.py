@@ -37,7 +37,7 @@ def inspect_logs(sources: list[LogSource], cfg: Config) -> dict[str, Any]:
         for role in v.present:
             topic = v.topic(role)
             ts = vs.topics.get(topic)
-            info = logs.topic_infos[topic]
+            info = v.infos[role]
             entry: dict[str, Any] = {
                 "topic": topic,
                 "role": role,
@@ -112,6 +112,15 @@ def inspect_logs(sources: list[LogSource], cfg: Config) -> dict[str, Any]:
             "stereo": stereo,
             "calibration": calibration.get(name),
         }
+    if not vehicles:
+        seen = ", ".join(f"{t} ({i.schema_name})" for t, i in sorted(logs.topic_infos.items()))
+        logs.problems.append(
+            _error(
+                f"{logs.names}: no vehicle found; topics seen: {seen or 'none'}; name a "
+                "vehicle's topics with logs.vehicles.NAME.topics.<role> (or the templates of "
+                "logs.vehicle_defaults.topics), and give each robot's log as NAME=LOG"
+            )
+        )
     return {
         "logs": [_describe_source(s) for s in sources],
         "vehicles": vehicles,
@@ -143,7 +152,8 @@ def _describe_source(src: LogSource) -> dict[str, Any]:
     entry: dict[str, Any] = {"path": src.name}
     path = Path(src.name)
     if path.exists():
-        entry["size_bytes"] = path.stat().st_size
+        files = [p for p in path.rglob("*") if p.is_file()] if path.is_dir() else [path]
+        entry["size_bytes"] = sum(p.stat().st_size for p in files)
     entry["metadata"] = src.metadata()
     return entry
 

@@ -89,7 +89,7 @@ def _write_odd_encoding(path):
                     "header": header(10**9, f"v/{side}"),
                     "height": 2,
                     "width": 2,
-                    "encoding": "yuv422",
+                    "encoding": "nv21",
                     "is_bigendian": 0,
                     "step": 4,
                     "data": bytes(8),
@@ -109,7 +109,7 @@ def _write_odd_encoding(path):
             "image is 64x48 but its calibration (CameraInfo /uav1/stereo/left/camera_info "
             "+ /tf_static) is for 70x48",
         ),
-        ("encoding", "unknown image encoding 'yuv422'"),
+        ("encoding", "unknown image encoding 'nv21'"),
         ("zero_focal", "non-positive focal length"),
         ("bad_key", "--set logs.nope=1: logs.nope: unknown key"),
     ],
@@ -197,7 +197,9 @@ def test_zero_baseline_is_fatal(cvslam, tmp_path):
         f"logs.vehicles.uav1.rig.right={cam}",
     )
     assert res.code == 1
-    assert "zero stereo baseline" in res.err.splitlines()[-1]
+    last = res.err.splitlines()[-1]
+    assert "no stereo extrinsics (zero baseline): /tf_static does not link uav1/base_link" in last
+    assert "logs.vehicles.uav1.rig.left.T_body_cam and rig.right.T_body_cam" in last
 
 
 def test_import_euroc_then_info(cvslam, shared_data, tmp_path):

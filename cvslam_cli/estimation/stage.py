@@ -13,6 +13,7 @@ temporary folder renamed when complete (docs/fuse_outputs.md): per vehicle `<v>.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Sequence
@@ -67,8 +68,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
     write_result_mcap,
 )
-from cvslam_cli.io.logs import LogSet
-from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, with_run_bindings
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
@@ -159,22 +159,28 @@ def _read_motion(logs: LogSet, vehicles: list[str]) -> dict[str, _Motion]:
     return out
 
 
+def _auto_model(vehicle: str, motion: _Motion, fallback_cv: bool) -> tuple[str, str]:
+    """The motion model the logs call for, and why: IMU -> ins, wheel odometry -> odometry,
+    neither -> constant velocity (unless fuse.motion.fallback_constant_velocity is false)."""
+    if len(motion.imu_stamps_ns):
+        return "ins", "IMU in the logs"
+    if len(motion.odom_stamps_ns):
+        return "odometry", "wheel odometry in the logs, no IMU"
+    if fallback_cv:
+        return "constant_velocity", "no IMU or odometry in the logs"
+    raise CvslamError(
+        f"vehicle {vehicle}: no IMU or odometry messages in the logs and "
+        "fuse.motion.fallback_constant_velocity is false; set it to true (or "
+        "fuse.motion.model=constant_velocity) to track it with a constant-velocity model"
+    )
+
+
 def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> MotionModel:
     mc = cfg.motion
     kind = mc.model
     if kind == "auto":
-        if len(motion.imu_stamps_ns):
-            kind = "ins"
-        elif len(motion.odom_stamps_ns):
-            kind = "odometry"
-        elif mc.fallback_constant_velocity:
-            kind = "constant_velocity"
-        else:
-            raise CvslamError(
-                f"vehicle {vehicle}: no IMU or odometry messages in the logs; set "
-                "fuse.motion.model=constant_velocity (or fuse.motion.fallback_constant_velocity"
-                "=true) to track it with a constant-velocity model"
-            )
+        kind, why = _auto_model(vehicle, motion, mc.fallback_constant_velocity)
+        log.info("%s: motion model %s (%s; fuse.motion.model to choose)", vehicle, kind, why)
     if kind == "ins":
         if not len(motion.imu_stamps_ns):
             raise CvslamError(f"vehicle {vehicle}: fuse.motion.model is ins but no IMU messages")
@@ -216,6 +222,12 @@ def _initial_pose(
         raise CvslamError(f"vehicle {vehicle}: ground truth ends before the first frame")
     if i > 0 and t_min - gt.stamps_ns[i - 1] < gt.stamps_ns[i] - t_min:
         i -= 1  # the nearest sample (before the first frame is fine: the filter predicts)
+    if not np.all(np.isfinite(gt.q_nav_body_xyzw[i])):
+        raise CvslamError(
+            f"vehicle {vehicle}: the ground truth has positions only (PointStamped), no "
+            "initial attitude; give it with fuse.initial.poses.<vehicle> or set "
+            "fuse.initial.source=origin"
+        )
     R = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[i])
     euler = matrix_to_euler_zyx(R)
     j0, j1 = max(i - 1, 0), min(i + 1, len(gt) - 1)
@@ -550,14 +562,15 @@ def run(
     layout = RunLayout(run_dir)
     out = layout.fuse(fuse_name(kind, single))
     files, features, metas = _load_features(layout)
-    logs_used = list(log_paths) or layout.find_logs(metas)
+    cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
+    logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
     rd = RunDir(run_dir)
     outputs = _outputs(out, list(features))
     plan = rd.plan(out.name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)
     if plan.action == "skip":
         log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out.path)
         return FuseSummary(out.path, True, kind, single, {}, 0, 0.0, 0.0, 0)
-    logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
+    logs = open_logs(logs_used, cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     settings = slam_settings(cfg.fuse, kind)
     res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress)

@@ -16,6 +16,7 @@ Outputs, in `<run>/eval/` (written as a whole folder, atomically: `io/atomic.py`
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import logging
@@ -31,16 +32,22 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from cvslam_cli import __version__
-from cvslam_cli.config import Config, EvalConfig, dump_config
+from cvslam_cli.config import Config, EvalConfig, LogsConfig, dump_config
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.evaluation import figures as figs
 from cvslam_cli.evaluation import metrics as mtr
 from cvslam_cli.evaluation.report import FigureEntry, render_report
+from cvslam_cli.geometry.nav_frames import table_to_nav
 from cvslam_cli.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
-from cvslam_cli.io.logs import LogSet, ground_truth_tables
-from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.logs import (
+    LogSet,
+    all_log_paths,
+    ground_truth_tables,
+    open_logs,
+    with_run_bindings,
+)
 from cvslam_cli.io.run_layout import (
     DEADRECKONING,
     EVAL,
@@ -57,8 +64,7 @@ from cvslam_cli.io.run_layout import (
     RunLayout,
 )
 from cvslam_cli.io.rundir import RunDir, input_record
-from cvslam_cli.io.textfiles import data_lines, read_text
-from cvslam_cli.io.trajectory import read_kitti, read_tum
+from cvslam_cli.io.trajectory import read_trajectory_file, read_tum
 from cvslam_cli.records.poses import PoseTable
 
 log = logging.getLogger("cvslam")
@@ -106,20 +112,11 @@ def _fuse_runs(layout: RunLayout) -> list[FuseFolder]:
     return runs
 
 
-def _read_trajectory(path: Path) -> PoseTable:
-    """TUM (8 numbers per line) or KITTI (12) by content."""
-    lines = data_lines(read_text(path, "a trajectory (TUM or KITTI pose file)"))
-    first = next((line.split() for _, line in lines), [])
-    if len(first) == 12:
-        return read_kitti(path)
-    return read_tum(path)
-
-
 def _gt_from_files(
-    specs: Sequence[str], vehicles: Sequence[str]
+    specs: Sequence[str], vehicles: Sequence[str], logs_cfg: LogsConfig
 ) -> tuple[dict[str, PoseTable], list[Path]]:
     """(truth per vehicle, the files) from `--gt` specs: FILE named <vehicle>.* or
-    VEHICLE=FILE."""
+    VEHICLE=FILE; TUM, KITTI or EuRoC CSV, in the vehicle's `ground_truth_frame`."""
     out: dict[str, PoseTable] = {}
     files: list[Path] = []
     for spec in specs:
@@ -134,15 +131,17 @@ def _gt_from_files(
             )
         if not path.is_file():
             raise CvslamError(f"--gt {spec}: {path} not found")
-        out[vehicle] = _read_trajectory(path)
+        vcfg = logs_cfg.vehicles.get(vehicle, logs_cfg.vehicle_defaults)
+        out[vehicle] = table_to_nav(read_trajectory_file(path), vcfg.ground_truth_frame)
         files.append(path)
     return out, files
 
 
 def _logs(cfg: Config, run_dir: Path, log_paths: Sequence[Path]) -> tuple[LogSet, list[Path]]:
     _, metas = feature_frame_index(run_dir)
-    logs_used = list(log_paths) or RunLayout(run_dir).find_logs(metas)
-    return LogSet([McapLogSource(p) for p in logs_used], cfg.logs), logs_used
+    cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
+    logs_used = all_log_paths(list(log_paths) or RunLayout(run_dir).find_logs(metas), cfg.logs)
+    return open_logs(logs_used, cfg.logs), logs_used
 
 
 def _with_truth(logs: LogSet, vehicles: Sequence[str]) -> list[str]:
@@ -162,7 +161,7 @@ def _ground_truth(
 ) -> tuple[dict[str, PoseTable], list[Path], str]:
     """(truth per vehicle, files it came from, a description)."""
     if gt:
-        truth, files = _gt_from_files(gt, vehicles)
+        truth, files = _gt_from_files(gt, vehicles, cfg.logs)
         missing = [v for v in vehicles if v not in truth]
         if missing:
             log.warning("eval: no ground truth given for %s: not evaluated", ", ".join(missing))

@@ -42,8 +42,7 @@ from cvslam_cli.geometry.stereo import (
 )
 from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.features_file import save_features
-from cvslam_cli.io.logs import LogSet
-from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs
 from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.parallel import STATE, ordered_map
@@ -238,9 +237,7 @@ def _extract(
     builders = {v: FeatureSetBuilder(v, rig_calibration(rigs[v])) for v in vehicles}
     rows: dict[str, list[dict[str, Any]]] = {v: [] for v in vehicles}
     started = {v: 0.0 for v in vehicles}
-    total = sum(
-        logs.topic_infos[logs.vehicles[v].topic("left_image")].message_count for v in vehicles
-    )
+    total = sum(logs.vehicles[v].infos["left_image"].message_count for v in vehicles)
     t_start = time.perf_counter()
     with tqdm(
         total=total, desc="extract", unit="pair", disable=None if progress else True, leave=False
@@ -284,10 +281,11 @@ def run(
 ) -> ExtractSummary:
     rd = RunDir(run_dir)
     layout = RunLayout(run_dir)
-    logs = LogSet([McapLogSource(p) for p in log_paths], cfg.logs)
+    logs = open_logs(log_paths, cfg.logs)
     vehicles = _stereo_vehicles(logs)
     outputs = [p for v in vehicles for p in (layout.feature_file(v), layout.feature_stats(v))]
-    plan = rd.plan(EXTRACT_STAGE, cfg, ("logs", "extract"), list(log_paths), outputs, force)
+    inputs = all_log_paths(log_paths, cfg.logs)
+    plan = rd.plan(EXTRACT_STAGE, cfg, ("logs", "extract"), inputs, outputs, force)
     if plan.action == "skip":
         log.info("extract: %s is up to date (same config and inputs); --force to redo it", run_dir)
         return ExtractSummary(run_dir, True, {})

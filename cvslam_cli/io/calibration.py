@@ -1,10 +1,12 @@
 """The stereo rig of each vehicle in a set of logs, resolved once.
 
 Each camera's model comes from the first CameraInfo on its topic when there is one, else from
-the rig config (`logs.vehicles.<name>.rig.left/right`). Its extrinsics (T_body_cam) come from
-`/tf_static` when that links the vehicle's body frame to the camera's frame, else from the rig
-config; a rectified pair with no extrinsics at all gets its right camera from the rectified
-right projection matrix (the baseline along the left camera's x). `Calibration` resolves a
+the rig config (`logs.vehicles.<name>.rig.left/right`, which `--calib` fills from a Kalibr
+file; distortion names like Kalibr's `radtan` mapped to ROS's). Its extrinsics (T_body_cam)
+come from `/tf_static` (of the vehicle's own log when it is bound to one, else of the logs no
+vehicle is bound to) when that links the vehicle's body frame to the camera's frame, else
+from the rig config; a rectified pair with no extrinsics at all gets its right camera from the
+rectified right projection matrix (the baseline along the left camera's x). `Calibration` resolves a
 vehicle's rig once and keeps the outcome (the rig, or the error saying why there is none), so
 streaming never goes back to the logs for it.
 """
@@ -25,6 +27,18 @@ from cvslam_cli.geometry.rotations import invert_T, make_T, quat_xyzw_to_matrix
 from cvslam_cli.io.mcap_source import LogSource, RawMessage
 from cvslam_cli.io.topic_map import LogTopics
 
+#: other names of the distortion models (Kalibr's radtan is ROS's plumb_bob)
+DISTORTION_ALIASES = {
+    "radtan": "plumb_bob",
+    "radial-tangential": "plumb_bob",
+    "fisheye": "equidistant",
+}
+
+
+def distortion_model_name(name: str) -> str:
+    """The ROS name of a distortion model given under another name ('' -> 'none')."""
+    return DISTORTION_ALIASES.get(name, name) or "none"
+
 
 def camera_from_info(msg: Any, source: str) -> CameraModel:
     """CameraModel from a decoded sensor_msgs/msg/CameraInfo."""
@@ -34,7 +48,7 @@ def camera_from_info(msg: Any, source: str) -> CameraModel:
         height=int(msg.height),
         K=np.asarray(msg.k, dtype=float).reshape(3, 3),
         D=np.asarray(msg.d, dtype=float),
-        distortion_model=str(msg.distortion_model) or "none",
+        distortion_model=distortion_model_name(str(msg.distortion_model)),
         R_rect=np.asarray(msg.r, dtype=float).reshape(3, 3),
         P=P if np.any(P) else None,
         frame_id=str(msg.header.frame_id),
@@ -50,7 +64,7 @@ def camera_from_config(cfg: CameraConfig, frame_id: str, source: str) -> CameraM
         height=cfg.height,
         K=K,
         D=np.asarray(cfg.distortion),
-        distortion_model=cfg.distortion_model,
+        distortion_model=distortion_model_name(cfg.distortion_model),
         T_body_cam=np.asarray(cfg.T_body_cam, dtype=float).reshape(4, 4),
         frame_id=frame_id,
         source=source,
@@ -113,20 +127,32 @@ class Calibration:
         self._topics = topics
         self._cfg = cfg
         self._names = names
-        self._tf: StaticTransforms | None = None
+        self._tf: dict[tuple[int, ...], StaticTransforms] = {}
         self._outcomes: dict[str, StereoRig | CvslamError] = {}
 
     @property
     def static_transforms(self) -> StaticTransforms:
-        """Every transform on the logs' `/tf_static` topic (read at first use)."""
-        if self._tf is None:
-            self._tf = StaticTransforms()
+        """Every transform on `/tf_static` of the logs no vehicle is bound to."""
+        bound = {i for v in self._topics.vehicles.values() if v.config.log for i in v.sources}
+        return self._transforms(tuple(i for i in range(len(self._sources)) if i not in bound))
+
+    def _transforms(self, logs: tuple[int, ...]) -> StaticTransforms:
+        """The `/tf_static` transforms of the logs with these indices (read at first use)."""
+        if logs not in self._tf:
+            tf = self._tf[logs] = StaticTransforms()
             topic = self._cfg.tf_static_topic
             for i in self._topics.logs_of.get(topic, []):
+                if i not in logs:
+                    continue
                 for raw in self._sources[i].messages([topic]):
                     if raw.schema_name == "tf2_msgs/msg/TFMessage":
-                        self._tf.add_message(raw.msg)
-        return self._tf
+                        tf.add_message(raw.msg)
+        return self._tf[logs]
+
+    def _vehicle_transforms(self, vehicle: str) -> StaticTransforms:
+        """A bound vehicle's own log's transforms; the others', those of the unbound logs."""
+        v = self._topics.vehicles[vehicle]
+        return self._transforms(v.sources) if v.config.log else self.static_transforms
 
     def rig(self, vehicle: str) -> StereoRig:
         """Stereo calibration of `vehicle` (CalibrationError when none can be had)."""
@@ -147,10 +173,12 @@ class Calibration:
                 self._outcomes[vehicle] = exc
         return self._outcomes[vehicle]
 
-    def _first(self, topic: str) -> RawMessage | None:
-        for i in self._topics.logs_of.get(topic, []):
-            for raw in self._sources[i].messages([topic]):
-                return raw
+    def _first(self, vehicle: str, topic: str) -> RawMessage | None:
+        """The first message on a topic of `vehicle`'s logs."""
+        for i in self._topics.vehicles[vehicle].sources:
+            if topic in self._sources[i].topics():
+                for raw in self._sources[i].messages([topic]):
+                    return raw
         return None
 
     def _camera(self, vehicle: str, side: str) -> tuple[CameraModel, np.ndarray]:
@@ -159,11 +187,11 @@ class Calibration:
         v = self._topics.vehicles[vehicle]
         cam_cfg = getattr(v.config.rig, side)
         info_topic = v.topic(f"{side}_info")
-        raw = self._first(info_topic) if f"{side}_info" in v.present else None
+        raw = self._first(vehicle, info_topic) if f"{side}_info" in v.present else None
         if raw is not None:
             return camera_from_info(raw.msg, f"CameraInfo {info_topic}"), cam_cfg.T_body_cam
         if cam_cfg.configured:
-            img = self._first(v.topic(f"{side}_image"))
+            img = self._first(vehicle, v.topic(f"{side}_image"))
             frame_id = img.msg.header.frame_id if img else ""
             source = f"config logs.vehicles.{vehicle}.rig.{side}"
             return camera_from_config(cam_cfg, frame_id, source), cam_cfg.T_body_cam
@@ -173,15 +201,13 @@ class Calibration:
         )
 
     def _resolve(self, vehicle: str) -> StereoRig:
-        body_frame = self._topics.vehicles[vehicle].config.rig.body_frame.replace(
-            "{vehicle}", vehicle
-        )
+        v = self._topics.vehicles[vehicle]
+        body_frame = v.config.rig.body_frame.replace("{vehicle}", v.template_name or vehicle)
+        tf = self._vehicle_transforms(vehicle)
         cams: list[CameraModel] = []
         for side in ("left", "right"):
             cam, extr = self._camera(vehicle, side)
-            T_body_cam = (
-                self.static_transforms.lookup(body_frame, cam.frame_id) if cam.frame_id else None
-            )
+            T_body_cam = tf.lookup(body_frame, cam.frame_id) if cam.frame_id else None
             if T_body_cam is None:
                 T_body_cam = np.asarray(extr, dtype=float).reshape(4, 4)
             else:
@@ -196,5 +222,17 @@ class Calibration:
             # rectified pair with no extrinsics: the right camera sits b along the left's x
             right = dataclasses.replace(right, T_body_cam=left.T_body_cam @ translation_T(b_p))
             rig = StereoRig(left, right)
-        rig.validate(f"{self._names}: vehicle {vehicle}")
+        where = f"{self._names}: vehicle {vehicle}"
+        left.validate(f"{where} left camera")
+        right.validate(f"{where} right camera")
+        if rig.baseline_m < 1e-6:
+            raise CalibrationError(
+                f"{self._names}: vehicle {vehicle}: no stereo extrinsics (zero baseline): "
+                f"{self._cfg.tf_static_topic} does not link {body_frame} to the cameras' frames "
+                f"({left.frame_id or 'no frame_id'}, {right.frame_id or 'no frame_id'}) and "
+                f"logs.vehicles.{vehicle}.rig.left.T_body_cam and rig.right.T_body_cam put "
+                "both cameras at the same place (identity when not set); give either "
+                "(--calib camchain.yaml reads them from a Kalibr calibration)"
+            )
+        rig.validate(where)
         return rig

@@ -1,7 +1,10 @@
 """Image decoding/encoding for sensor_msgs/msg/Image and sensor_msgs/msg/CompressedImage.
 
 Decoded images are numpy arrays: (H, W) for mono encodings (uint8 or uint16), (H, W, 3)
-BGR uint8 for colour (alpha dropped), which is what OpenCV expects downstream.
+BGR for colour (alpha dropped; uint8, or uint16 for the 16-bit encodings), which is what
+OpenCV expects downstream. Bayer mosaics (bayer_rggb8 ... bayer_grbg16) are demosaiced and
+YUV 4:2:2 (yuv422 = UYVY, yuv422_yuy2 = YUYV) converted to BGR by OpenCV's conversions,
+with the pattern names cv_bridge gives them.
 """
 
 from __future__ import annotations
@@ -21,6 +24,39 @@ RAW_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
     "bgr8": (np.dtype(np.uint8), 3),
     "rgba8": (np.dtype(np.uint8), 4),
     "bgra8": (np.dtype(np.uint8), 4),
+    "8UC3": (np.dtype(np.uint8), 3),
+    "8UC4": (np.dtype(np.uint8), 4),
+    "rgb16": (np.dtype(np.uint16), 3),
+    "bgr16": (np.dtype(np.uint16), 3),
+    "rgba16": (np.dtype(np.uint16), 4),
+    "bgra16": (np.dtype(np.uint16), 4),
+    "16UC3": (np.dtype(np.uint16), 3),
+    "16UC4": (np.dtype(np.uint16), 4),
+    "yuv422": (np.dtype(np.uint8), 2),
+    "yuv422_yuy2": (np.dtype(np.uint8), 2),
+    **{
+        f"bayer_{p}{b}": (np.dtype(f"uint{b}"), 1)
+        for p in ("rggb", "bggr", "gbrg", "grbg")
+        for b in (8, 16)
+    },
+}
+# Bayer pattern (as ROS names it, from the top-left pixel) -> OpenCV demosaicing code
+_BAYER = {
+    p: getattr(cv2, f"COLOR_Bayer{p.upper()}2BGR", getattr(cv2, f"COLOR_Bayer{legacy}2BGR"))
+    for p, legacy in (("rggb", "BG"), ("bggr", "RG"), ("gbrg", "GR"), ("grbg", "GB"))
+}
+_TO_BGR = {
+    "rgb8": cv2.COLOR_RGB2BGR,
+    "rgb16": cv2.COLOR_RGB2BGR,
+    "rgba8": cv2.COLOR_RGBA2BGR,
+    "rgba16": cv2.COLOR_RGBA2BGR,
+    "bgra8": cv2.COLOR_BGRA2BGR,
+    "bgra16": cv2.COLOR_BGRA2BGR,
+    "8UC4": cv2.COLOR_BGRA2BGR,
+    "16UC4": cv2.COLOR_BGRA2BGR,
+    "yuv422": cv2.COLOR_YUV2BGR_UYVY,
+    "yuv422_yuy2": cv2.COLOR_YUV2BGR_YUY2,
+    **{f"bayer_{p}{b}": code for p, code in _BAYER.items() for b in (8, 16)},
 }
 
 
@@ -53,12 +89,9 @@ def decode_raw(msg: Any) -> tuple[np.ndarray, str]:
     arr = arr.reshape(h, w, channels) if channels > 1 else arr.reshape(h, w)
     if dtype.itemsize > 1 and big:
         arr = arr.astype(dtype)
-    if encoding == "rgb8":
-        arr = arr[:, :, ::-1]
-    elif encoding == "rgba8":
-        arr = cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_RGBA2BGR)
-    elif encoding == "bgra8":
-        arr = cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_BGRA2BGR)
+    code = _TO_BGR.get(encoding)
+    if code is not None:
+        arr = cv2.cvtColor(np.ascontiguousarray(arr), code)
     return arr, encoding
 
 

@@ -17,19 +17,20 @@ from cvslam_cli.io.mcap_source import LogSource, RawMessage
 
 
 def merged_messages(
-    sources: Sequence[LogSource], logs_of: dict[str, list[int]], topics: Collection[str]
-) -> Iterator[RawMessage]:
-    """The messages of `topics` from every log holding one (`logs_of`: topic -> indices of
-    those logs), merged by log time."""
-    streams = []
-    for i, src in enumerate(sources):
-        mine = [t for t in topics if i in logs_of.get(t, [])]
-        if mine:
-            streams.append(src.messages(mine))
+    sources: Sequence[LogSource], wanted: dict[int, Collection[str]]
+) -> Iterator[tuple[int, RawMessage]]:
+    """(log index, message) of the topics `wanted` from each log (log index -> its topics),
+    merged by log time."""
+    streams = [_tagged(i, sources[i], ts) for i, ts in sorted(wanted.items()) if ts]
     if len(streams) == 1:
         yield from streams[0]
     else:
-        yield from heapq.merge(*streams, key=lambda r: r.log_time_ns)
+        yield from heapq.merge(*streams, key=lambda r: r[1].log_time_ns)
+
+
+def _tagged(i: int, source: LogSource, topics: Collection[str]) -> Iterator[tuple[int, RawMessage]]:
+    for raw in source.messages(list(topics)):
+        yield i, raw
 
 
 class ReorderWindow:

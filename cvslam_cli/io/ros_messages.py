@@ -54,13 +54,36 @@ def odometry_record(vehicle: str, stamp_ns: int, msg: Any) -> OdometryRecord | N
     )
 
 
+def _pose_of(msg: Any) -> tuple[Any, Any | None]:
+    """(position, orientation or None) of any ground-truth message type: PoseStamped,
+    PoseWithCovarianceStamped, Odometry (`pose.pose`), TransformStamped (`transform`),
+    PointStamped (`point`, no orientation)."""
+    if hasattr(msg, "transform"):
+        return msg.transform.translation, msg.transform.rotation
+    if hasattr(msg, "point"):
+        return msg.point, None
+    pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+    return pose.position, pose.orientation
+
+
 def pose_record(vehicle: str, stamp_ns: int, msg: Any) -> PoseRecord | None:
-    """geometry_msgs/msg/PoseStamped -> PoseRecord (position and quaternion in its frame)."""
-    p, q = msg.pose.position, msg.pose.orientation
-    vals = np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w], dtype=float)
-    if not np.all(np.isfinite(vals)):
+    """A ground-truth message (`GROUND_TRUTH_TYPES`) -> PoseRecord (position and quaternion
+    in its frame; a PointStamped has no orientation: its quaternion is NaN)."""
+    p, q = _pose_of(msg)
+    pos = np.array([p.x, p.y, p.z], dtype=float)
+    quat = np.full(4, np.nan) if q is None else np.array([q.x, q.y, q.z, q.w], dtype=float)
+    if not (np.all(np.isfinite(pos)) and (q is None or np.all(np.isfinite(quat)))):
         return None
-    return PoseRecord(vehicle, stamp_ns, str(msg.header.frame_id), vals[:3], vals[3:])
+    return PoseRecord(vehicle, stamp_ns, str(msg.header.frame_id), pos, quat)
+
+
+GROUND_TRUTH_TYPES = (
+    "geometry_msgs/msg/PoseStamped",
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/TransformStamped",
+    "nav_msgs/msg/Odometry",
+    "geometry_msgs/msg/PointStamped",
+)
 
 
 CONVERTERS: dict[str, Callable[[str, int, Any], Record | None]] = {

@@ -39,6 +39,15 @@ def file_sha256(path: Path) -> str:
 
 
 def input_record(path: Path) -> dict[str, Any]:
+    if path.is_dir():  # a rosbag2 folder: its files' names and checksums, summed sizes
+        files = sorted(p for p in path.rglob("*") if p.is_file())
+        listing = "".join(f"{p.relative_to(path)} {file_sha256(p)}\n" for p in files)
+        digest = hashlib.sha256(listing.encode()).hexdigest()
+        return {
+            "path": str(path.resolve()),
+            "size": sum(p.stat().st_size for p in files),
+            "sha256": digest,
+        }
     return {"path": str(path.resolve()), "size": path.stat().st_size, "sha256": file_sha256(path)}
 
 

@@ -18,10 +18,10 @@ from cvslam_cli.records.log import ImageRecord, Record, StereoFrame
 class StereoPairer:
     """Pairs left/right images of each vehicle arriving in stamp order (module docstring);
     other records pass through. Counts pairs, unpaired images and the largest left/right
-    stamp offset in `stats`."""
+    stamp offset in `stats`. `role_of`: (vehicle, topic) -> role of each image topic."""
 
     def __init__(
-        self, tolerance_ns: int, stats: dict[str, VehicleStats], role_of: dict[str, tuple[str, str]]
+        self, tolerance_ns: int, stats: dict[str, VehicleStats], role_of: dict[tuple[str, str], str]
     ) -> None:
         self.tol = tolerance_ns
         self.stats = stats
@@ -38,7 +38,8 @@ class StereoPairer:
         if not isinstance(rec, ImageRecord):
             yield rec
             return
-        vehicle, role = self.role_of[rec.topic]
+        vehicle = rec.vehicle
+        role = self.role_of[(vehicle, rec.topic)]
         side = role.removesuffix("_image")
         other_side = "right" if side == "left" else "left"
         for s in (side, other_side):

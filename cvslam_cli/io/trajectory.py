@@ -8,6 +8,10 @@ the values to the 9 written decimals.
 
 KITTI pose format (what evo reads with `evo_traj kitti`): one pose per line, the 12 numbers
 of the row-major 3x4 matrix [R | t] of `T_world_body`, no stamps and no comments.
+
+EuRoC ground-truth CSV (`state_groundtruth_estimate0/data.csv`): `timestamp [ns], p x y z,
+q w x y z, ...` (velocity and biases follow; ignored), comma-separated, '#' header.
+`read_trajectory_file` tells the three apart by their lines.
 """
 
 from __future__ import annotations
@@ -83,14 +87,21 @@ def read_tum(path: Path, error: type[CvslamError] = CvslamError) -> PoseTable:
         lines.append(no)
     check_stamps_increasing(path, stamps, lines, error)
     arr = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
-    norms = np.linalg.norm(arr[:, 3:], axis=1)
+    _check_unit(path, arr[:, 3:], lines, "qx qy qz qw", error)
+    return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3].copy(), arr[:, 3:].copy())
+
+
+def _check_unit(
+    path: Path, q: F64, lines: list[int], columns: str, error: type[CvslamError]
+) -> None:
+    """`error` naming the file and line of the first quaternion whose norm is not 1."""
+    norms = np.linalg.norm(q, axis=1)
     bad = first_non_unit(norms)
     if bad is not None:
         raise error(
             f"{path}: line {lines[bad]}: quaternion norm {norms[bad]:.4f} is not 1 "
-            "(expected qx qy qz qw in columns 5-8)"
+            f"(expected {columns} in columns 5-8)"
         )
-    return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3].copy(), arr[:, 3:].copy())
 
 
 def write_kitti(path: Path, table: PoseTable) -> None:
@@ -148,3 +159,45 @@ def read_kitti(path: Path, stamps_ns: I64 | None = None) -> PoseTable:
         check_stamps_increasing(path, stamps, lines)
     q = matrix_to_quat_xyzw(R) if len(T) else np.empty((0, 4))
     return PoseTable(stamps, T[:, :, 3].copy(), q.reshape(-1, 4))
+
+
+def read_euroc_csv(path: Path, error: type[CvslamError] = CvslamError) -> PoseTable:
+    """Read an EuRoC ground-truth CSV (`t_ns, px, py, pz, qw, qx, qy, qz[, ...]` per line):
+    integer-nanosecond stamps, the quaternion reordered to x y z w. `error` naming the file
+    and line for a malformed line, a non-unit quaternion or stamps that do not increase."""
+    stamps: list[int] = []
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    text = read_text(path, "an EuRoC ground-truth CSV (t_ns, p xyz, q wxyz, ...)", error)
+    for no, line in data_lines(text):
+        fields = [f.strip() for f in line.split(",")]
+        try:
+            if len(fields) < 8:
+                raise ValueError
+            stamps.append(int(fields[0]))
+            rows.append(finite_floats(fields[1:8]))
+        except ValueError:
+            raise error(
+                f"{path}: line {no}: expected t_ns, px, py, pz, qw, qx, qy, qz (comma-separated), "
+                f"got {line[:80]!r}"
+            ) from None
+        lines.append(no)
+    check_stamps_increasing(path, stamps, lines, error)
+    arr = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
+    q_xyzw = arr[:, [4, 5, 6, 3]]
+    _check_unit(path, q_xyzw, lines, "qw qx qy qz", error)
+    return PoseTable(np.asarray(stamps, dtype=np.int64), arr[:, :3].copy(), q_xyzw.copy())
+
+
+def read_trajectory_file(path: Path) -> PoseTable:
+    """A TUM (8 numbers per line), KITTI (12) or EuRoC CSV (comma-separated, integer
+    nanosecond stamps, 8 or more columns) file, told apart by its first data line."""
+    lines = data_lines(read_text(path, "a trajectory (TUM, KITTI or EuRoC CSV file)"))
+    first = next((line for _, line in lines), "")
+    fields = first.replace(",", " ").split()
+    if len(fields) == 12 and "," not in first:
+        return read_kitti(path)
+    ns_stamp = bool(fields) and fields[0].isdigit() and (len(fields) > 8 or len(fields[0]) >= 16)
+    if "," in first and len(fields) >= 8 and ns_stamp:
+        return read_euroc_csv(path)
+    return read_tum(path)

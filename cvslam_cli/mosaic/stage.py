@@ -37,8 +37,13 @@ from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.atomic import atomic_dir
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import read_map_csv
-from cvslam_cli.io.logs import LogSet, ground_truth_tables
-from cvslam_cli.io.mcap_source import McapLogSource
+from cvslam_cli.io.logs import (
+    LogSet,
+    all_log_paths,
+    ground_truth_tables,
+    open_logs,
+    with_run_bindings,
+)
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
 from cvslam_cli.io.run_layout import (
     MERGED_MOSAIC,
@@ -216,7 +221,7 @@ def _fuse_inputs(fuse: FuseFolder, vehicles: Sequence[str], source: str) -> dict
 
 
 def _open_logs(cfg: Config, logs_used: Sequence[Path], vehicles: Sequence[str]) -> LogSet:
-    logs = LogSet([McapLogSource(p) for p in logs_used], cfg.logs)
+    logs = open_logs(logs_used, cfg.logs)
     missing = [v for v in vehicles if v not in logs.vehicles]
     if missing:
         raise CvslamError(f"{logs.names}: no vehicle {missing[0]!r} (it has features)")
@@ -496,7 +501,8 @@ def run(
     rd = RunDir(run_dir)
     frame_stamps_ns, metas = feature_frame_index(run_dir)
     vehicles = sorted(frame_stamps_ns)
-    logs_used = list(log_paths) or layout.find_logs(metas)
+    cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
+    logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
     fuse = layout.fuse(mc.fuse_dir)
     traj_files = _fuse_inputs(fuse, vehicles, mc.source)
     out = layout.mosaic(mosaic_name(mc.source))

@@ -16,13 +16,15 @@ from cvslam_cli.records.arrays import F64
 
 @dataclass(frozen=True, eq=False)
 class ImageRecord:
-    """One decoded image. `image`: (H, W) grey or (H, W, 3) BGR, uint8 or uint16."""
+    """One decoded image. `image`: (H, W) grey or (H, W, 3) BGR, uint8 or uint16. `vehicle`:
+    whose camera took it (two vehicles' logs may use the same topic names)."""
 
     stamp_ns: int
     image: NDArray
     encoding: str
     frame_id: str
     topic: str
+    vehicle: str = ""
 
     @property
     def width(self) -> int:

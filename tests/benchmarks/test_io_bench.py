@@ -6,6 +6,10 @@
   Target: >= 500 images/s.
 - Memory: peak RSS of a process reading a short log vs one reading a 10x longer log, each
   measured after importing everything (the baseline is an empty read). Must stay flat.
+- Per storage (issue 18): the same logs converted by `rosbags-convert`'s converter into a
+  rosbag2 MCAP folder, a sqlite3 .db3 bag, a ROS 1 .bag and a zstd file-compressed MCAP, read
+  through `open_logs` (the `rosbags` readers, or decompression then the fast path): images/s
+  against the bare .mcap fast path of the same run, and peak RSS short vs 10x long.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import pytest
 from mcap.reader import make_reader
 
 from cvslam_cli.config import load_config
-from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.logs import LogSet, open_logs
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.records.log import StereoFrame
@@ -104,10 +108,10 @@ def test_decode_throughput(logs_dir: Path) -> None:
 
 _PEAK = textwrap.dedent("""
     import resource, sys
+    from pathlib import Path
     from cvslam_cli.config import load_config
-    from cvslam_cli.io.logs import LogSet
-    from cvslam_cli.io.mcap_source import McapLogSource
-    logs = LogSet([McapLogSource(sys.argv[1])], load_config().logs)
+    from cvslam_cli.io.logs import open_logs
+    logs = open_logs([Path(sys.argv[1])], load_config().logs)
     n = 0
     if sys.argv[2] == "read":
         n = sum(1 for _ in logs.records())
@@ -135,3 +139,71 @@ def test_peak_memory_flat_with_log_length(logs_dir: Path) -> None:
     )
     assert n_long > 9 * n_short
     assert long_ / short < 1.15
+
+
+STORAGES = {
+    "rosbag2 folder (mcap)": ("folder", "mcap", None),
+    "sqlite3 .db3": ("db3", "sqlite3", None),
+    "ROS 1 .bag": ("bag", None, None),
+    "zstd file-compressed .mcap.zstd": ("zstd", "mcap", "file"),
+}
+
+
+def convert_log(src: Path, kind: str) -> Path:
+    """`src` (a bare .mcap) in another storage, written by rosbags' converter."""
+    from rosbags.convert.converter import convert
+    from rosbags.typesys import Stores, get_typestore
+
+    folder, storage, mode = STORAGES[kind]
+    dst = src.with_name(f"{src.stem}_{folder}" + (".bag" if folder == "bag" else ""))
+    if not dst.exists():
+        ros1 = get_typestore(Stores.ROS1_NOETIC) if folder == "bag" else None
+        convert(
+            [src],
+            dst,
+            storage or "mcap",
+            9,
+            "zstd" if mode else None,
+            mode or "file",
+            None,
+            ros1,
+            (),
+            (),
+            (),
+            (),
+        )
+    if folder == "db3":
+        return next(dst.glob("*.db3"))
+    if folder == "zstd":
+        return next(dst.glob("*.mcap.zstd"))
+    return dst
+
+
+@pytest.mark.parametrize("kind", list(STORAGES))
+def test_decode_throughput_per_storage(logs_dir: Path, kind: str) -> None:
+    cfg = load_config().logs
+    bare, other = logs_dir / "short.mcap", convert_log(logs_dir / "short.mcap", kind)
+
+    def read(path: Path) -> int:
+        return sum(2 for r in open_logs([path], cfg).records() if isinstance(r, StereoFrame))
+
+    assert read(other) == read(bare) == 120
+    t_fast, t_other = _best_of(lambda: read(bare)), _best_of(lambda: read(other))
+    print(
+        f"\n[bench] decode 752x480 mono8, {kind}: {120 / t_other:8.0f} images/s | .mcap fast "
+        f"path {120 / t_fast:8.0f} images/s | ratio {t_fast / t_other:.2f}"
+    )
+
+
+@pytest.mark.parametrize("kind", ["sqlite3 .db3", "ROS 1 .bag", "rosbag2 folder (mcap)"])
+def test_peak_memory_flat_with_log_length_per_storage(logs_dir: Path, kind: str) -> None:
+    short, long_ = (convert_log(logs_dir / f"{n}.mcap", kind) for n in ("short", "long"))
+    n_short, rss_short = _peak_kib(short, "read")
+    n_long, rss_long = _peak_kib(long_, "read")
+    print(
+        f"\n[bench] peak RSS, {kind}: short log ({n_short} records) {rss_short / 1024:.0f} MiB | "
+        f"10x log ({n_long} records) {rss_long / 1024:.0f} MiB | long/short "
+        f"{rss_long / rss_short:.2f}"
+    )
+    assert n_long > 9 * n_short
+    assert rss_long / rss_short < 1.15

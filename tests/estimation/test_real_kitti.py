@@ -48,6 +48,19 @@ def cvslam_module():
     return run
 
 
+def test_kitti_runs_with_no_motion_model_setting(kitti_run):
+    """No IMU, no odometry, nothing about the motion model in the config: constant velocity."""
+    import yaml
+
+    from cvslam_cli.io.rundir import RunDir
+
+    _, run = kitti_run
+    assert "motion" not in yaml.safe_load((REPO / "configs" / "kitti.yaml").read_text())["fuse"]
+    fuse = RunDir(run).load()["stages"]["fuse"]
+    assert fuse["config"]["fuse"]["motion"]["model"] == "auto"
+    assert fuse["summary"]["vehicles"]["car"]["model"] == "constant_velocity"
+
+
 def _truth(log: Path) -> PoseTable:
     recs = [
         r

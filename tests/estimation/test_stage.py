@@ -191,7 +191,8 @@ def test_a_diverging_filter_is_reported_with_its_time(sim_run, tmp_path, cvslam)
                "--set", "fuse.association.gate_probability=0.999999999")  # fmt: skip
     assert r.code == 1
     assert "diverged" in r.err and "s into the run" in r.err and "NIS" in r.err
-    assert len(r.err.strip().splitlines()) == 1
+    said = [ln for ln in r.err.strip().splitlines() if "motion model" not in ln]
+    assert len(said) == 1 and said[0].startswith("cvslam: error:")
     assert not (run / "fuse").exists() and not (run / "fuse.partial").exists()
 
 
@@ -216,14 +217,20 @@ def test_an_interrupted_fuse_leaves_no_complete_looking_output(sim_run, tmp_path
 
 def test_bad_inputs_give_one_line_errors(sim_run, tmp_path, cvslam):
     run = _copy(sim_run, tmp_path)
-    # no motion data and no constant-velocity fallback
-    r = cvslam("fuse", run, "--set", "logs.vehicle_defaults.topics.imu=/nothing")
+    # no motion data and the constant-velocity fallback turned off
+    r = cvslam("fuse", run, "--set", "logs.vehicle_defaults.topics.imu=/nothing",
+               "--set", "fuse.motion.fallback_constant_velocity=false")  # fmt: skip
     assert r.code == 1 and "no IMU or odometry" in r.err and "constant_velocity" in r.err
-    # ... with the fallback configured it runs
+    # ... by default it runs, with the constant-velocity model, and says so in one line
     r = cvslam("fuse", run, "--force", "--set", "logs.vehicle_defaults.topics.imu=/nothing",
-               "--set", "fuse.motion.fallback_constant_velocity=true",
                "--set", "fuse.divergence.nis_per_dof_max=1000")  # fmt: skip
     assert r.code == 0, r.err
+    said = [ln for ln in r.err.splitlines() if "motion model" in ln]
+    assert said == [
+        f"cvslam: {v}: motion model constant_velocity (no IMU or odometry in the logs; "
+        "fuse.motion.model to choose)"
+        for v in ("uav1", "uav2")
+    ]
     # a feature file of another format version
     f = run / "features" / "uav1.npz"
     with np.load(f) as npz:

@@ -45,8 +45,8 @@ def test_mono_and_colour_encodings(pad):
 
 
 def test_unknown_encoding_and_short_data():
-    with pytest.raises(ImageDecodeError, match="unknown image encoding 'yuv422'"):
-        decode_raw(_msg(GREY, "yuv422"))
+    with pytest.raises(ImageDecodeError, match="unknown image encoding 'nv21'"):
+        decode_raw(_msg(GREY, "nv21"))
     short = _msg(GREY, "mono8")
     short.data = short.data[:-1]
     with pytest.raises(ImageDecodeError, match="expected 5 rows"):
@@ -80,3 +80,42 @@ def test_raw_fields_round_trip():
     for arr in (GREY, DEEP, BGR):
         f = raw_fields(arr)
         np.testing.assert_array_equal(decode_raw(SimpleNamespace(**f))[0], arr)
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_bayer_mosaics_demosaic_to_their_colour(pattern, bits):
+    """A uniform colour mosaicked by `pattern` (its letters: the top-left 2x2 cell, row by
+    row) comes back as that colour (B, G, R) inside the image."""
+    bgr = {"b": 10, "g": 100, "r": 200}
+    scale = 256 if bits == 16 else 1
+    raw = np.zeros((8, 10), np.uint16 if bits == 16 else np.uint8)
+    for k, ch in enumerate(pattern):
+        raw[k // 2 :: 2, k % 2 :: 2] = bgr[ch] * scale
+    out, enc = decode_raw(_msg(raw, f"bayer_{pattern}{bits}"))
+    assert enc == f"bayer_{pattern}{bits}" and out.shape == (8, 10, 3) and out.dtype == raw.dtype
+    np.testing.assert_array_equal(
+        out[2:-2, 2:-2], np.broadcast_to(np.array([10, 100, 200]) * scale, (4, 6, 3))
+    )
+
+
+@pytest.mark.parametrize(
+    ("encoding", "code"),
+    [("yuv422", cv2.COLOR_BGR2YUV_UYVY), ("yuv422_yuy2", cv2.COLOR_BGR2YUV_YUY2)],
+)
+def test_yuv422_converts_to_bgr(encoding, code):
+    flat = np.zeros((4, 6, 3), np.uint8)
+    flat[:] = (60, 120, 180)
+    yuv = cv2.cvtColor(flat, code)  # (H, W, 2)
+    out, _ = decode_raw(_msg(yuv, encoding))
+    assert out.shape == (4, 6, 3) and np.max(np.abs(out.astype(int) - flat)) <= 2
+
+
+def test_16_bit_colour_keeps_its_depth_as_bgr():
+    rgb16 = (BGR[:, :, ::-1].astype(np.uint16) * 257).copy()
+    out, _ = decode_raw(_msg(rgb16, "rgb16", pad=2, big=True))
+    np.testing.assert_array_equal(out, BGR.astype(np.uint16) * 257)
+    bgra16 = np.dstack([BGR.astype(np.uint16) * 257, np.full(BGR.shape[:2], 7, np.uint16)])
+    np.testing.assert_array_equal(
+        decode_raw(_msg(bgra16, "bgra16"))[0], BGR.astype(np.uint16) * 257
+    )

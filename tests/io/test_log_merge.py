@@ -24,9 +24,13 @@ def test_logs_merged_by_log_time_each_asked_for_its_own_topics():
     a = _Messages([("/a", 1), ("/c", 4), ("/a", 6)])
     b = _Messages([("/b", 2), ("/b", 5)])
     idle = _Messages([("/d", 3)])
-    logs_of = {"/a": [0], "/c": [0], "/b": [1], "/d": [2]}
-    out = list(merged_messages([a, b, idle], logs_of, {"/a", "/b"}))
-    assert [(m.topic, m.log_time_ns) for m in out] == [("/a", 1), ("/b", 2), ("/b", 5), ("/a", 6)]
+    out = list(merged_messages([a, b, idle], {0: ["/a"], 1: ["/b"], 2: []}))
+    assert [(i, m.topic, m.log_time_ns) for i, m in out] == [
+        (0, "/a", 1),
+        (1, "/b", 2),
+        (1, "/b", 5),
+        (0, "/a", 6),
+    ]
     assert (a.asked, b.asked, idle.asked) == ([{"/a"}], [{"/b"}], [])
 
 

@@ -35,12 +35,12 @@ def test_pairing_within_tolerance_and_unpaired_counts(tmp_path):
 
 
 def _image(topic: str, stamp_ns: int) -> ImageRecord:
-    return ImageRecord(stamp_ns, np.zeros((2, 2), np.uint8), "mono8", "", topic)
+    return ImageRecord(stamp_ns, np.zeros((2, 2), np.uint8), "mono8", "", topic, "v")
 
 
 def test_pairer_takes_the_oldest_partner_within_the_tolerance():
     stats = {"v": VehicleStats()}
-    role_of = {"/l": ("v", "left_image"), "/r": ("v", "right_image")}
+    role_of = {("v", "/l"): "left_image", ("v", "/r"): "right_image"}
     pairer = StereoPairer(10, stats, role_of)
     gt = PoseRecord("v", 5, "nav", np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
     stream = [

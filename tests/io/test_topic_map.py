@@ -61,7 +61,8 @@ def test_vehicles_discovered_from_the_topic_templates():
     assert uav1.present == ("left_image", "right_image", "imu") and uav1.has_stereo
     assert uav1.topic("left_image") == "/uav1/stereo/left/image_raw/compressed"
     assert not topics.vehicles["uav2"].has_stereo
-    assert topics.role_of["/uav1/imu"] == ("uav1", "imu")
+    assert topics.role_of[(1, "/uav1/imu")] == ("uav1", "imu")
+    assert uav1.sources == (0, 1) and topics.vehicles["uav2"].sources == (0,)
     assert topics.logs_of == {
         "/uav2/imu": [0],
         "/uav1/stereo/left/image_raw/compressed": [0],
@@ -83,9 +84,26 @@ def test_configured_vehicles_only_and_message_counts_summed():
 
 def test_a_topic_of_two_vehicles_or_of_the_wrong_type_is_an_error():
     shared = ["logs.vehicles.a.topics.imu=/imu", "logs.vehicles.b.topics.imu=/imu"]
-    with pytest.raises(LogError, match="topic /imu is mapped to both vehicle a and vehicle b"):
+    both = r"topic /imu is mapped twice: as vehicle a's imu \(logs\.vehicles\.a\.topics\.imu\) "
+    with pytest.raises(LogError, match=both + r"and as vehicle b's imu \(logs\.vehicles\.b"):
         _map(_Listing({"/imu": IMU}), overrides=shared)
     with pytest.raises(LogError, match=r"/uav1/imu: has type .*Image, expected .*Imu for uav1"):
         _map(_Listing({"/uav1/imu": IMAGE}))
     with pytest.raises(LogError, match=r"y.mcap: /uav1/imu: type .*Image differs from .*Imu"):
         _map(_Listing({"/uav1/imu": IMU}), _Listing({"/uav1/imu": IMAGE}, name="y.mcap"))
+
+
+def test_logs_bound_to_two_vehicles_may_type_a_topic_differently():
+    pose, point = "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PointStamped"
+    a = _Listing({"/gt": pose, "/imu": IMU}, name="a.bag")
+    b = _Listing({"/gt": point, "/imu": IMU}, name="b.bag")
+    names = [
+        "logs.vehicle_defaults.topics.ground_truth=/gt",
+        "logs.vehicle_defaults.topics.imu=/imu",
+    ]
+    topics = _map(a, b, overrides=[*names, "logs.vehicles={r1: a.bag, r2: b.bag}"])
+    assert topics.vehicles["r1"].infos["ground_truth"].schema_name == pose
+    assert topics.vehicles["r2"].infos["ground_truth"].schema_name == point
+    assert topics.role_of[(1, "/gt")] == ("r2", "ground_truth")
+    with pytest.raises(LogError, match=r"b\.bag: /gt: type .*PointStamped differs"):
+        _map(a, b, overrides=[*names, "logs.vehicles.r1.kind=uav"])
