@@ -177,7 +177,7 @@ class HinfConfig:
     """Nonlinear H-infinity filter (DESIGN.md section 2): Q_hat = c_w^2 Q, R_hat = c_v^2 R,
     bound gamma on the vehicle states or on all states."""
 
-    gamma: float = opt(10.0, lo=0.0, lo_open=True)
+    gamma: float = opt(30.0, lo=0.0, lo_open=True)
     c_w: float = opt(1.0, lo=1.0)
     c_v: float = opt(1.0, lo=1.0)
     bound: Literal["vehicle", "all"] = "vehicle"
@@ -266,7 +266,7 @@ class MapConfig:
     max_new_per_frame: int = opt(15, lo=0)
     max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)
     new_landmark_priority: Literal["previous_frame", "current_frame"] = "previous_frame"
-    landmark_coordinates: Literal["cartesian", "inverse_depth"] = "cartesian"
+    landmark_coordinates: Literal["auto", "cartesian", "inverse_depth"] = "auto"
     anchor_span_s: float = opt(1.0, lo=0.0)
     max_view_angle_deg: float = opt(80.0, lo=0.0, hi=180.0, lo_open=True)
     loop_closure_gap_s: float = opt(20.0, lo=0.0, lo_open=True)

@@ -74,7 +74,7 @@ class FilterSettings:
     ("all"); `gamma_margin`: how far above the largest eigenvalue a raised gamma^2 goes."""
 
     kind: str = "hinf"
-    gamma: float = 10.0
+    gamma: float = 30.0
     c_w: float = 1.0
     c_v: float = 1.0
     bound: str = "vehicle"

@@ -32,6 +32,7 @@ update sees nav-frame positions and covariances.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Literal, Protocol
 
 import numpy as np
@@ -40,6 +41,7 @@ from cvslam_cli.geometry.rotations import euler_zyx_matrices
 from cvslam_cli.records.arrays import F64
 
 CoordinatesName = Literal["cartesian", "inverse_depth"]
+CoordinatesSetting = Literal["auto", "cartesian", "inverse_depth"]
 
 # Inverse depths below this (points beyond 10^6 m, or moved through infinity by an update)
 # are clipped in the conversion: such a point is at infinity along its ray.
@@ -138,6 +140,22 @@ class AnchoredInverseDepth:
         return m, M
 
 
+def resolve(
+    setting: CoordinatesSetting, motion_kinds: Sequence[str]
+) -> tuple[CoordinatesName, str]:
+    """The coordinates the setting fuse.map.landmark_coordinates gives a team whose vehicles
+    have motion models `motion_kinds`, and why. auto: inverse depth when every vehicle has
+    an IMU (UAVs over ground far below, where it measured better in accuracy and
+    consistency), else Cartesian (wheel odometry or none: ground vehicles with forward
+    cameras at short range, where the Cartesian point measured better; BENCHMARKS.md,
+    "Fuse: consistency (issue 15)")."""
+    if setting != "auto":
+        return setting, "fuse.map.landmark_coordinates"
+    if motion_kinds and all(k == "ins" for k in motion_kinds):
+        return "inverse_depth", "auto: every vehicle has an IMU"
+    return "cartesian", "auto: a vehicle without an IMU"
+
+
 def coordinates(name: CoordinatesName) -> LandmarkCoordinates:
-    """The parameterisation called `name` (config key fuse.map.landmark_coordinates)."""
+    """The parameterisation called `name`."""
     return {"cartesian": Cartesian, "inverse_depth": AnchoredInverseDepth}[name]()

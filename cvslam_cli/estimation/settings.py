@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from cvslam_cli.estimation.filters import FilterSettings
-from cvslam_cli.estimation.landmark_coordinates import CoordinatesName
+from cvslam_cli.estimation.landmark_coordinates import CoordinatesSetting
 
 
 @dataclass(frozen=True)
@@ -25,7 +25,7 @@ class SlamSettings:
     max_new_per_frame: int = 15
     max_new_depth_sigma_ratio: float = 0.25
     new_landmark_priority: str = "previous_frame"  # or "current_frame" (new_landmarks.py)
-    landmark_coordinates: CoordinatesName = "cartesian"  # or "inverse_depth"
+    landmark_coordinates: CoordinatesSetting = "auto"  # landmark_coordinates.resolve
     anchor_span_ns: int = 1_000_000_000  # new landmarks share a vehicle's anchor this long
     loop_closure_gap_ns: int = 20_000_000_000
     loop_closure_min_landmarks: int = 3

@@ -53,7 +53,7 @@ from cvslam_cli.estimation.association import (
 from cvslam_cli.estimation.cooperation import Cooperation
 from cvslam_cli.estimation.events import Divergence, DivergenceMonitor, EventLog
 from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
-from cvslam_cli.estimation.landmark_coordinates import coordinates
+from cvslam_cli.estimation.landmark_coordinates import coordinates, resolve
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
@@ -115,7 +115,9 @@ class Slam:
         self.names = [v.name for v in vehicles]
         self.state = JointState(
             [(v.name, v.model, v.x0, v.P0) for v in vehicles],
-            coordinates(settings.landmark_coordinates),
+            coordinates(
+                resolve(settings.landmark_coordinates, [v.model.kind for v in vehicles])[0]
+            ),
         )
         self.book = LandmarkBook(len(vehicles))
         self.runs = [VehicleRun.start(v, i) for i, v in enumerate(vehicles)]

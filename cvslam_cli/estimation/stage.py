@@ -31,6 +31,7 @@ from cvslam_cli import __version__
 from cvslam_cli.config import Config, FuseConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.filters import FilterSettings
+from cvslam_cli.estimation.landmark_coordinates import resolve
 from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import (
     ConstantVelocityModel,
@@ -573,6 +574,8 @@ def run(
     logs = open_logs(logs_used, cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     settings = slam_settings(cfg.fuse, kind)
+    coords, why = resolve(settings.landmark_coordinates, [v.model.kind for v in inputs])
+    log.info("fuse: landmarks in %s coordinates (%s)", coords, why)
     res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress)
     dr = {v.name: dead_reckoning_track(v) for v in inputs}
     _refuse_diverged(res, inputs, layout, out.name, kind)

@@ -65,7 +65,7 @@ from cvslam_cli.parallel import STATE, ordered_map
 from cvslam_cli.records.arrays import F64
 from cvslam_cli.sim.scenario import LandmarkMode, load_scenario
 from cvslam_cli.sim.stage import run as simulate
-from tests.scenarios import MC_IMU_NOISE_OVERRIDES, VEHICLE, monte_carlo_uav_scenario
+from tests.scenarios import MC_FILTER_OVERRIDES, VEHICLE, monte_carlo_uav_scenario
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -78,7 +78,7 @@ DURATION_S = 15.0
 DEFAULT_OUTLIERS = LandmarkMode().outlier_fraction
 HIGH_OUTLIERS = 0.20
 FILTERS = ("ekf", "hinf")
-FUSE_NOISE = MC_IMU_NOISE_OVERRIDES
+FUSE_NOISE = MC_FILTER_OVERRIDES
 
 
 def scenario(outlier_fraction: float, duration_s: float = DURATION_S) -> dict[str, Any]:

@@ -12,18 +12,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
 from cvslam_cli.config import load_config
 from cvslam_cli.estimation import stage
 from cvslam_cli.estimation.slam import Slam
-from cvslam_cli.geometry.rotations import interpolate_positions
+from cvslam_cli.geometry.rotations import interpolate_poses, matrix_to_euler_zyx
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.sim.scenario import load_scenario
 from cvslam_cli.sim.stage import run as simulate
-from tests.scenarios import MC_IMU_NOISE_OVERRIDES, monte_carlo_uav_scenario
+from tests.scenarios import MC_FILTER_OVERRIDES, monte_carlo_uav_scenario
 
 REPO = Path(__file__).resolve().parents[2]
 SEEDS = range(6)
@@ -42,11 +43,12 @@ def sims(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     return out
 
 
-def _mean_position_nees(sims: list[Path], config_files: tuple[Path, ...]) -> float:
-    """Mean over frames (after the first) of the mean over runs of e^T P^-1 e (3-D position
-    error against the truth, the filter's 3x3 position covariance), EKF."""
-    cfg = load_config(config_files, list(MC_IMU_NOISE_OVERRIDES))
-    per_run = []
+def _nees(sims: list[Path], config_files: tuple[Path, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (after the first), the mean over runs of e^T P^-1 e for the 3-D position
+    error against the truth (the filter's 3x3 position covariance) and for the attitude
+    error (Euler angles, their 3x3 covariance), EKF: two (frames,) arrays."""
+    cfg = load_config(config_files, list(MC_FILTER_OVERRIDES))
+    pos, att = [], []
     for d in sims:
         fs = {"uav1": load_features(d / "features" / "uav1.npz")[0]}
         logs = LogSet([McapLogSource(d / "uav1.mcap")], cfg.logs)
@@ -55,16 +57,38 @@ def _mean_position_nees(sims: list[Path], config_files: tuple[Path, ...]) -> flo
             res = Slam(inputs, stage.slam_settings(cfg.fuse, "ekf")).run()
         tr, gt = res.tracks["uav1"], truth["uav1"]
         assert res.divergence is None
-        e = tr.p_nav_m - interpolate_positions(gt.stamps_ns, gt.p_nav_m, tr.stamps_ns)
-        P = tr.pose_cov[:, :3, :3]
-        per_run.append(np.einsum("fi,fi->f", e, np.linalg.solve(P, e[..., None])[..., 0]))
-    frames = min(len(n) for n in per_run)
-    return float(np.mean(np.mean([n[:frames] for n in per_run], axis=0)[1:]))
+        p_t, R_t, _ = interpolate_poses(gt.stamps_ns, gt.p_nav_m, gt.q_nav_body_xyzw, tr.stamps_ns)
+        e = tr.p_nav_m - p_t
+        de = tr.euler_rad - np.array([matrix_to_euler_zyx(R) for R in R_t])
+        de = (de + np.pi) % (2 * np.pi) - np.pi
+        P = tr.pose_cov
+        pos.append(np.einsum("fi,fi->f", e, np.linalg.solve(P[:, :3, :3], e[..., None])[..., 0]))
+        att.append(np.einsum("fi,fi->f", de, np.linalg.solve(P[:, 3:, 3:], de[..., None])[..., 0]))
+    frames = min(len(n) for n in pos)
+    return (
+        np.mean([n[:frames] for n in pos], axis=0)[1:],
+        np.mean([n[:frames] for n in att], axis=0)[1:],
+    )
+
+
+def _in_band(mean_nees: np.ndarray) -> float:
+    """Fraction of frames whose mean NEES over the runs lies in its two-sided 95 % band
+    (chi-square with 3 x runs dof, divided by the runs)."""
+    n = len(SEEDS)
+    lo, hi = chi2.ppf([0.025, 0.975], 3 * n) / n
+    return float(np.mean((mean_nees >= lo) & (mean_nees <= hi)))
 
 
 def test_default_filter_is_consistent_and_the_papers_is_not(sims):
-    default = _mean_position_nees(sims, ())
-    paper = _mean_position_nees(sims, (REPO / "configs" / "paper.yaml",))
-    print(f"\nmean position NEES (3 expected): default {default:.2f}, paper preset {paper:.2f}")
-    assert 1.0 < default < 6.0
-    assert paper > 2 * default
+    default = _nees(sims, ())
+    paper = _nees(sims, (REPO / "configs" / "paper.yaml",))
+    for name, (p, a) in (("default", default), ("paper preset", paper)):
+        print(
+            f"\n{name}: mean NEES (3 expected) position {p.mean():.2f} ({_in_band(p):.0%} of "
+            f"frames in the 95 % band), attitude {a.mean():.2f} ({_in_band(a):.0%})"
+        )
+    (p, a), (p_paper, a_paper) = default, paper
+    assert 1.5 < p.mean() < 4.5 and 1.5 < a.mean() < 4.5
+    assert _in_band(p) > 0.6 and _in_band(a) > 0.6
+    # the paper's filter claims several times more than it knows
+    assert p_paper.mean() > 2 * p.mean() and a_paper.mean() > 1.5 * a.mean()
