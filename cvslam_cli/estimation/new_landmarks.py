@@ -16,6 +16,11 @@ covariance and cross-covariance from the pose (standard SLAM augmentation):
 
     m = g(x_v, p_cam),  P_mm = G_x P_vv G_x^T + G_c C_cam G_c^T,  P_mx = G_x P_v.
 
+In anchored inverse depth (`landmark_coordinates.py`) the same point is written relative to
+an anchor clone of the vehicle's pose: a vehicle's new landmarks share its latest clone for
+`anchor_span_ns` (fewer clones, a smaller state), after which the next frame that adds
+landmarks clones the pose anew.
+
 The state is kept under its landmark bound (`settings.landmark_bound`) by evicting in the
 order of `mapping.LandmarkBook.eviction_order`.
 """

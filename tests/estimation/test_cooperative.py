@@ -54,9 +54,8 @@ def _errors(run: Path, folder: str, vehicle: str) -> tuple[np.ndarray, np.ndarra
 
 def test_each_uav_alone_beats_dead_reckoning_tenfold_and_closes_the_loop(paper_run):
     """Issue 5's check: each UAV alone, final error >= 10x smaller than dead reckoning; UAV1's
-    position uncertainty drops when it closes its loop. (With the map no longer biased by
-    the choice of new landmarks, issue 15, UAV1 has drifted ~0.14 m when it closes the loop
-    and its sigma drops ~5 %; with the biased map it had drifted ~1.5 m and dropped ~37 %.)"""
+    position uncertainty drops when it closes its loop (less, the less it drifted before:
+    BENCHMARKS.md, "Fuse: consistency (issue 15)")."""
     summary = _summary(paper_run, "fuse_single")
     for v in ("uav1", "uav2"):
         s = summary["vehicles"][v]
