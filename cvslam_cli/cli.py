@@ -11,6 +11,7 @@ import dataclasses
 import functools
 import json
 import logging
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -705,12 +706,25 @@ def run_cmd(
 # ----------------------------------------------------------------------------- entry
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that the stage unwinds like on Ctrl-C."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
 def main(argv: Sequence[str] | None = None) -> None:
-    """Console entry point with the one error boundary."""
+    """Console entry point with the one error boundary; Ctrl-C exits 130, SIGTERM 143,
+    both after the stage has unwound (partial outputs removed, workers shut down)."""
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         rc = cli.main(
             args=list(argv) if argv is not None else None, prog_name="cvslam", standalone_mode=False
         )
+    except _Terminated:
+        click.echo("cvslam: terminated", err=True)
+        sys.exit(143)
     except click.exceptions.Abort:
         click.echo("cvslam: interrupted", err=True)
         sys.exit(130)
@@ -723,4 +737,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     except KeyboardInterrupt:
         click.echo("cvslam: interrupted", err=True)
         sys.exit(130)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     sys.exit(rc if isinstance(rc, int) else 0)

@@ -177,6 +177,10 @@ def _job(args: tuple[str, int, np.ndarray, np.ndarray]) -> tuple[str, int, tuple
     return vehicle, stamp, process_frame(left, right, STATE["rigs"][vehicle], STATE["cfg"])
 
 
+def _describe_job(args: tuple[str, int, np.ndarray, np.ndarray]) -> str:
+    return f"the {args[0]} frame at stamp {args[1]} ns"
+
+
 def _frames(logs: LogSet, vehicles: list[str]) -> Iterator[tuple[str, int, np.ndarray, np.ndarray]]:
     for rec in logs.records(vehicles=vehicles, roles=("left_image", "right_image")):
         if isinstance(rec, StereoFrame):
@@ -243,7 +247,11 @@ def _extract(
         total=total, desc="extract", unit="pair", disable=None if progress else True, leave=False
     ) as bar:
         for vehicle, stamp, (left, right, matches, stats) in ordered_map(
-            _job, _frames(logs, vehicles), workers=workers, state={"rigs": rigs, "cfg": cfg}
+            _job,
+            _frames(logs, vehicles),
+            workers=workers,
+            state={"rigs": rigs, "cfg": cfg},
+            describe=_describe_job,
         ):
             builders[vehicle].add_frame(stamp, left, right, matches)
             rows[vehicle].append({"stamp_ns": stamp, **stats})

@@ -19,7 +19,7 @@ Each loss is a `Damage` whose `text` is the warning the user sees.
 from __future__ import annotations
 
 import heapq
-import mmap
+import os
 import struct
 import zlib
 from collections.abc import Collection, Iterator
@@ -136,14 +136,47 @@ def _sec(ns: int | None) -> str:
     return "?" if ns is None else f"{ns / 1e9:.3f}"
 
 
+class _File:
+    """Positional reads of one file: nothing is mapped or held, so memory stays at what the
+    caller keeps (a chunk at a time), whatever the length of the file."""
+
+    _BLOCK = 1 << 20
+
+    def __init__(self, path: Path) -> None:
+        self._fd = os.open(path, os.O_RDONLY)
+        self.size = os.fstat(self._fd).st_size
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+    def read(self, pos: int, n: int) -> bytes:
+        return os.pread(self._fd, n, pos) if n > 0 else b""
+
+    def unpack(self, fmt: str, pos: int) -> tuple[Any, ...]:
+        return struct.unpack(fmt, self.read(pos, struct.calcsize(fmt)))
+
+    def crc(self, start: int, end: int) -> int:
+        crc = 0
+        for pos in range(start, end, self._BLOCK):
+            crc = zlib.crc32(self.read(pos, min(self._BLOCK, end - pos)), crc)
+        return crc
+
+    def find(self, byte: bytes, start: int, end: int) -> int:
+        """The offset of the first `byte` (one byte) in `start`..`end`, or -1."""
+        for pos in range(start, end, self._BLOCK):
+            i = self.read(pos, min(self._BLOCK, end - pos)).find(byte)
+            if i >= 0:
+                return pos + i
+        return -1
+
+
 class McapScan:
-    """One open MCAP file (memory-mapped); `damages` grows as its records are read."""
+    """One open MCAP file; `damages` grows as its records are read."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        with path.open("rb") as f:
-            self._mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-        self.size = len(self._mm)
+        self._f = _File(path)
+        self.size = self._f.size
         self.damages: list[Damage] = []
         self.summary_problem: str | None = None
         self.schemas: dict[int, Schema] = {}
@@ -157,7 +190,7 @@ class McapScan:
         self._indexed = self._read_summary()
 
     def close(self) -> None:
-        self._mm.close()
+        self._f.close()
 
     def __enter__(self) -> McapScan:
         return self
@@ -176,8 +209,7 @@ class McapScan:
         """(opcode, body length) of the record at `pos` if it is a known one that fits."""
         if pos + _RECORD_HEAD > end:
             return None
-        opcode = self._mm[pos]
-        (length,) = struct.unpack_from("<Q", self._mm, pos + 1)
+        opcode, length = self._f.unpack("<BQ", pos)
         if opcode not in _KNOWN_OPCODES or pos + _RECORD_HEAD + length > end:
             return None
         return opcode, length
@@ -187,7 +219,7 @@ class McapScan:
         parser = _PARSERS.get(opcode)
         if parser is None:
             return None
-        body = self._mm[pos + _RECORD_HEAD : pos + _RECORD_HEAD + length]
+        body = self._f.read(pos + _RECORD_HEAD, length)
         stream = ReadDataStream(BytesIO(body))
         if opcode == _OP_MESSAGE:
             return Message.read(stream, length)
@@ -270,7 +302,10 @@ class McapScan:
     def _read_summary(self) -> bool:
         """Read the summary if it is sound; else note why (`summary_problem`)."""
         footer_pos = self.size - len(MCAP_MAGIC) - _FOOTER_RECORD
-        if footer_pos < len(MCAP_MAGIC) or self._mm[self.size - len(MCAP_MAGIC) :] != MCAP_MAGIC:
+        if (
+            footer_pos < len(MCAP_MAGIC)
+            or self._f.read(self.size - len(MCAP_MAGIC), 8) != MCAP_MAGIC
+        ):
             self.summary_problem = "no footer (not closed cleanly, or cut short)"
             return False
         head = self._head(footer_pos, self.size - len(MCAP_MAGIC))
@@ -284,9 +319,7 @@ class McapScan:
         if not len(MCAP_MAGIC) <= footer.summary_start <= footer_pos:
             self.summary_problem = f"footer damaged (summary start {footer.summary_start})"
             return False
-        covered = memoryview(self._mm)[footer.summary_start : footer_pos + _RECORD_HEAD + 16]
-        crc = zlib.crc32(covered)
-        covered.release()
+        crc = self._f.crc(footer.summary_start, footer_pos + _RECORD_HEAD + 16)
         if footer.summary_crc not in (0, crc):
             self.summary_problem = "summary section damaged (CRC mismatch)"
             return False
@@ -306,7 +339,7 @@ class McapScan:
                 elif isinstance(rec, Statistics):
                     self.statistics = rec
                 elif opcode == 0x0D:  # MetadataIndex: offset of one Metadata record
-                    (offset,) = struct.unpack_from("<Q", self._mm, pos + _RECORD_HEAD)
+                    (offset,) = self._f.unpack("<Q", pos + _RECORD_HEAD)
                     self.metadata_offsets.append(offset)
                 pos += _RECORD_HEAD + length
         except Exception as exc:  # a summary that parses badly is not used at all
@@ -343,9 +376,7 @@ class McapScan:
         expected = self._parse(self._data_end, *head).data_section_crc
         if expected == 0:
             return
-        view = memoryview(self._mm)[: self._data_end]
-        actual = zlib.crc32(view)
-        view.release()
+        actual = self._f.crc(0, self._data_end)
         if actual != expected:
             self.damages.append(
                 Damage(
@@ -496,7 +527,7 @@ class McapScan:
                 # go on right after it when a record starts there (its message index records
                 # then count what it held), else at the next sound chunk
                 pos = after if self._head(after, end) else self._next_chunk(start + 1, end)
-                kind = "chunk" if self._mm[start] == _OP_CHUNK else "record"
+                kind = "chunk" if self._f.read(start, 1) == bytes([_OP_CHUNK]) else "record"
                 last_damage = Damage(
                     start, pos, exc.args[0] if head is None else f"{kind}: {_reason(exc)}"
                 )
@@ -565,10 +596,10 @@ class McapScan:
         """Why the record header at `pos` is not usable."""
         if end - pos < _RECORD_HEAD:
             return f"file truncated: ends inside a record header at byte {pos}"
-        (length,) = struct.unpack_from("<Q", self._mm, pos + 1)
-        if self._mm[pos] not in _KNOWN_OPCODES:
-            return f"unknown record opcode 0x{self._mm[pos]:02x}"
-        kind = "chunk" if self._mm[pos] == _OP_CHUNK else "record"
+        opcode, length = self._f.unpack("<BQ", pos)
+        if opcode not in _KNOWN_OPCODES:
+            return f"unknown record opcode 0x{opcode:02x}"
+        kind = "chunk" if opcode == _OP_CHUNK else "record"
         if pos + _RECORD_HEAD + length > self.size:
             return f"file truncated: a {kind} of {length} bytes at byte {pos} runs past its end"
         return f"a {kind} of {length} bytes at byte {pos} runs past the data section"
@@ -577,14 +608,14 @@ class McapScan:
         """The log-time span a chunk header at `pos` claims, when it is there to read."""
         if pos + _RECORD_HEAD + 16 > end:
             return None
-        start, stop = struct.unpack_from("<QQ", self._mm, pos + _RECORD_HEAD)
+        start, stop = self._f.unpack("<QQ", pos + _RECORD_HEAD)
         return (start, stop) if start <= stop else None
 
     def _next_chunk(self, pos: int, end: int) -> int:
         """The offset of the next record from `pos` on that parses as a sound chunk (`end`
         when there is none)."""
         while True:
-            pos = self._mm.find(b"\x06", pos, end)
+            pos = self._f.find(bytes([_OP_CHUNK]), pos, end)
             if pos < 0:
                 return end
             head = self._head(pos, end)
@@ -601,13 +632,13 @@ class McapScan:
         body = pos + _RECORD_HEAD
         if length < 40:
             return False
-        start, stop, _size, _crc, n = struct.unpack_from("<QQQII", self._mm, body)
+        start, stop, _size, _crc, n = self._f.unpack("<QQQII", body)
         if start > stop or n > 4:
             return False
         if 32 + n + 8 > length:
             return False
-        comp = bytes(self._mm[body + 32 : body + 32 + n])
-        (n_data,) = struct.unpack_from("<Q", self._mm, body + 32 + n)
+        comp = self._f.read(body + 32, n)
+        (n_data,) = self._f.unpack("<Q", body + 32 + n)
         return comp in (b"", b"zstd", b"lz4") and 32 + n + 8 + n_data == length
 
 

@@ -382,7 +382,13 @@ def _write_vehicle(
     if images_mode:
         jobs = [(v.index, k, s.T_left[k], s.T_right[k]) for k in range(len(s.t_cam))]
         state = {**render_state, "rig": rig, "rays": (pixel_rays(rig.left), pixel_rays(rig.right))}
-        rendered = ordered_map(_render_pair, jobs, workers=workers, state=state)
+        rendered = ordered_map(
+            _render_pair,
+            jobs,
+            workers=workers,
+            state=state,
+            describe=lambda job: f"rendering {vehicle} frame {job[1]}",
+        )
     builder = FeatureSetBuilder(vehicle, rig_calibration(rig))
     lm_rng = _rng(sc.seed, v.index, _LANDMARKS)
 
