@@ -191,7 +191,19 @@ def _import_common(func: Callable[..., Any]) -> Callable[..., Any]:
         show_default=True,
         help="Vehicle name used in topic names (/<vehicle>/...).",
     )(func)
+    func = click.option("--force", is_flag=True, help="Replace an existing output file.")(func)
     return config_options(func)
+
+
+def _import_target(output: Path, force: bool) -> Path:
+    """`output`, checked before the import: an existing file is replaced only with `--force`
+    (and never anything that is not a regular file); its folder must be writable."""
+    from cvslam_cli.io.atomic import check_writable
+
+    if (output.exists() or output.is_symlink()) and not force:
+        raise CvslamError(f"{output}: already exists (use --force to replace it)")
+    check_writable([output])
+    return output
 
 
 def _report_import(summary: Any, cfg: Config) -> None:
@@ -215,10 +227,11 @@ def _report_import(summary: Any, cfg: Config) -> None:
 @import_.command(name="euroc")
 @click.argument("mav0_dir", type=click.Path(path_type=Path))
 @_import_common
-def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, cfg: Config) -> None:
+def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, force: bool, cfg: Config) -> None:
     """Import an EuRoC MAV (ASL folder layout) MAV0_DIR into an MCAP log."""
     from cvslam_cli.io.importers.euroc import import_euroc
 
+    output = _import_target(output, force)
     _report_import(
         import_euroc(mav0_dir, output, vehicle, progress=log.isEnabledFor(logging.INFO)), cfg
     )
@@ -235,11 +248,12 @@ def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, cfg: Config) ->
 )
 @_import_common
 def import_kitti_cmd(
-    seq_dir: Path, rate_hz: float, output: Path, vehicle: str, cfg: Config
+    seq_dir: Path, rate_hz: float, output: Path, vehicle: str, force: bool, cfg: Config
 ) -> None:
     """Import a KITTI odometry sequence folder SEQ_DIR into an MCAP log."""
     from cvslam_cli.io.importers.kitti import import_kitti
 
+    output = _import_target(output, force)
     _report_import(
         import_kitti(
             seq_dir, output, vehicle, rate_hz=rate_hz, progress=log.isEnabledFor(logging.INFO)
@@ -725,7 +739,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     except _Terminated:
         click.echo("cvslam: terminated", err=True)
         sys.exit(143)
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as exc:
+        if isinstance(exc.__cause__, EOFError):  # click turns every EOFError into Abort:
+            raise exc.__cause__ from None  # one not from the terminal is a bug, not Ctrl-D
         click.echo("cvslam: interrupted", err=True)
         sys.exit(130)
     except click.ClickException as exc:

@@ -60,7 +60,7 @@ from cvslam_cli.geometry.rotations import (
     quat_xyzw_to_matrix,
     so3_log,
 )
-from cvslam_cli.io.atomic import atomic_dir
+from cvslam_cli.io.atomic import atomic_dir, check_writable
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import (
     save_pose_covariances,
@@ -69,7 +69,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
     write_result_mcap,
 )
-from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, with_run_bindings
+from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, require_logs, with_run_bindings
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
@@ -565,12 +565,14 @@ def run(
     files, features, metas = _load_features(layout)
     cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
     logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
+    require_logs(logs_used)  # a missing log named before the plan reads it
     rd = RunDir(run_dir)
     outputs = _outputs(out, list(features))
     plan = rd.plan(out.name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)
     if plan.action == "skip":
         log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out.path)
         return FuseSummary(out.path, True, kind, single, {}, 0, 0.0, 0.0, 0)
+    check_writable(outputs)  # before the work: a read-only folder, a name too long
     logs = open_logs(logs_used, cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     settings = slam_settings(cfg.fuse, kind)

@@ -38,7 +38,7 @@ from cvslam_cli.evaluation import figures as figs
 from cvslam_cli.evaluation import metrics as mtr
 from cvslam_cli.evaluation.report import FigureEntry, render_report
 from cvslam_cli.geometry.nav_frames import table_to_nav
-from cvslam_cli.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
+from cvslam_cli.io.atomic import atomic_dir, check_writable, write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
 from cvslam_cli.io.logs import (
@@ -588,6 +588,7 @@ def run(
         log.info("eval: %s is up to date (same config and inputs); --force to redo it", out.path)
         old = pd.read_csv(out.headline_csv, index_col=0)
         return EvalSummary(run_dir, out.path, True, old, pd.read_csv(out.metrics_csv))
+    check_writable(outputs)  # before the work: a read-only folder, a name too long
     estimates = [e for e in _estimates(runs, vehicles) if e.vehicle in truth]
     rows, nees_of = _all_metrics(estimates, truth, truth_source, cfg.eval)
     metrics = pd.DataFrame(rows)

@@ -40,7 +40,7 @@ from cvslam_cli.geometry.stereo import (
     triangulate,
     triangulation_covariance,
 )
-from cvslam_cli.io.atomic import write_text_atomic
+from cvslam_cli.io.atomic import check_writable, write_text_atomic
 from cvslam_cli.io.features_file import save_features
 from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs
 from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
@@ -297,6 +297,7 @@ def run(
     if plan.action == "skip":
         log.info("extract: %s is up to date (same config and inputs); --force to redo it", run_dir)
         return ExtractSummary(run_dir, True, {})
+    check_writable(outputs)  # before the work: a read-only folder, a name too long
     rigs = {v: logs.rig(v) for v in vehicles}
     _log_stereo_limits(rigs, cfg.extract)
     done = _extract(logs, rigs, cfg.extract, workers, progress)

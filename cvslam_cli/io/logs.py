@@ -240,6 +240,13 @@ def with_run_bindings(cfg: LogsConfig, run_dir: Path) -> LogsConfig:
     return bind_logs(cfg, bound)
 
 
+def require_logs(paths: Sequence[Path]) -> None:
+    """LogError naming the first of `paths` that does not exist (before any work uses them)."""
+    for p in paths:
+        if not Path(p).exists():
+            raise LogError(f"{p}: file not found")
+
+
 def open_logs(paths: Sequence[Path], cfg: LogsConfig, *, strict: bool = True) -> LogSet:
     """The `LogSet` of the logs at `paths` and those bound to vehicles (`all_log_paths`), each
     opened by the reader its kind needs (`log_open.py`: MCAP, rosbag2 folder, sqlite3,
