@@ -149,3 +149,12 @@ def test_import_refuses_to_overwrite_without_force(tmp_path, cvslam):
     # with --force and a regular file the import itself runs (and here finds no sequence)
     res = cvslam("-q", "import", "kitti", tmp_path / "no_such_sequence", "-o", out, "--force")
     _one_line(res, "no_such_sequence", "not found")
+
+
+def test_extract_of_a_log_whose_images_never_pair_exits_1(tmp_path, cvslam):
+    from tests.synth import write_stereo_log
+
+    log = write_stereo_log(tmp_path / "a.mcap", n_frames=5, right_offset_ns=30_000_000).path
+    res = cvslam("-q", "extract", log, "-o", tmp_path / "run")
+    _one_line(res, "vehicle uav1: no stereo pairs", "stereo_pair_tolerance_ms = 2 ms", "5 left")
+    assert not list((tmp_path / "run").glob("features/*"))

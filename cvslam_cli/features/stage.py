@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, ExtractConfig
-from cvslam_cli.errors import CvslamError
+from cvslam_cli.errors import CvslamError, LogError
 from cvslam_cli.features.matching import match_stereo
 from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
 from cvslam_cli.features.windows import auto_z_min_m, undistort_keypoints
@@ -301,6 +301,15 @@ def run(
     rigs = {v: logs.rig(v) for v in vehicles}
     _log_stereo_limits(rigs, cfg.extract)
     done = _extract(logs, rigs, cfg.extract, workers, progress)
+    for v in vehicles:
+        if not done.rows[v]:
+            vs = logs.stats[v]
+            raise LogError(
+                f"{logs.names}: vehicle {v}: no stereo pairs (no left and right image within "
+                f"logs.stereo_pair_tolerance_ms = {cfg.logs.stereo_pair_tolerance_ms:g} ms of "
+                f"each other; {vs.unpaired_left} left and {vs.unpaired_right} right images "
+                "unpaired); nothing written"
+            )
     summaries: dict[str, VehicleExtract] = {}
     for v in vehicles:
         meta = {
