@@ -425,18 +425,14 @@ def _write_outputs(
     write_result_mcap(out.result_mcap, tables, table, deadreckoning=dr_tables, metadata=meta)
 
 
-def _header(kind: str, run_dir: Path) -> str:
-    return f"cvslam {__version__} fuse ({kind}), nav frame NED, body FRD; run {run_dir.resolve()}"
+def _header(kind: str) -> str:
+    """The trajectory files' first line (no path: a run gives the same bytes wherever it is)."""
+    return f"cvslam {__version__} fuse ({kind}), nav frame NED, body FRD"
 
 
-def _metadata(kind: str, single: bool, run_dir: Path) -> dict[str, str]:
-    """The run's description in result.mcap."""
-    return {
-        "filter": kind,
-        "mode": _mode(single),
-        "cvslam_version": __version__,
-        "run_dir": str(run_dir.resolve()),
-    }
+def _metadata(kind: str, single: bool) -> dict[str, str]:
+    """The run's description in result.mcap (no path, like `_header`)."""
+    return {"filter": kind, "mode": _mode(single), "cvslam_version": __version__}
 
 
 def _mode(single: bool) -> str:
@@ -583,9 +579,7 @@ def run(
     _refuse_diverged(res, inputs, layout, out.name, kind)
     span_s = max((v.features.frame_stamp_ns[-1] - v.start_ns) * 1e-9 for v in inputs)
     with atomic_dir(out.path) as tmp:
-        _write_outputs(
-            FuseFolder(tmp), res, dr, _header(kind, run_dir), _metadata(kind, single, run_dir)
-        )
+        _write_outputs(FuseFolder(tmp), res, dr, _header(kind), _metadata(kind, single))
     vehicles = {v.name: _vehicle_fuse(v, res, dr[v.name], truth[v.name]) for v in inputs}
     summary = FuseSummary(
         out.path,

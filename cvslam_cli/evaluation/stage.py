@@ -494,14 +494,15 @@ def _provenance(
 ) -> dict[str, str]:
     """Where the report's data came from: the truth's files, the stages that made the
     estimates and mosaics."""
-    provenance = {
-        "run directory": str(rd.path.resolve()),
+    layout = RunLayout(rd.path)
+    inputs = layout.relative_inputs([input_record(p) for p in truth_files])
+    provenance = {  # paths relative to the run: the report is the same wherever the run is
         "ground truth": truth_source,
         "cvslam version": __version__,
         "evaluated": time.strftime("%Y-%m-%d %H:%M:%S %z"),
         "alignment": align,
         **{f"input {r['path']}": f"sha256 {r['sha256'][:16]}..., {r['size']} bytes"
-           for r in map(input_record, truth_files)},
+           for r in inputs},
     }  # fmt: skip
     stages = rd.load().get("stages", {})
     for name in (*(r.name for r in runs), MOSAIC, EXTRACT_STAGE):

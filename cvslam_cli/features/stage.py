@@ -315,7 +315,7 @@ def run(
         meta = {
             "producer": f"cvslam extract {__version__}",
             "vehicle": v,
-            "inputs": plan.inputs,
+            "inputs": layout.relative_inputs(plan.inputs),
             "config": plan.sections["extract"],
         }
         save_features(done.builders[v].build(), layout.feature_file(v), meta)
