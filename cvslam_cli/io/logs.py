@@ -118,12 +118,16 @@ class LogSet:
         wanted = self._topics.wanted(selected, roles)
         screen = StampScreen()
         for i, raw in merged_messages(self.sources, wanted):
-            vehicle = self._topics.role_of[(i, raw.topic)][0]
-            if not screen.arrived(
-                (vehicle, raw.topic), stamp_ns_of(raw.msg), raw.log_time_ns, raw.msg
-            ):
-                continue
-            rec = self._convert(i, raw, rigs)
+            key = (self._topics.role_of[(i, raw.topic)][0], raw.topic)
+            try:
+                if not screen.arrived(key, stamp_ns_of(raw.msg), raw.log_time_ns, raw.msg):
+                    continue
+                rec = self._convert(i, raw, rigs)
+            except AttributeError as exc:  # a schema of that name without the fields it has
+                raise LogError(
+                    f"{self.names}: {raw.topic}: its {raw.schema_name or 'schema'} messages lack "
+                    f"the field {exc.name!r} (a schema other than the ROS 2 one)"
+                ) from None
             if rec is None:
                 continue
             window.push(rec)

@@ -127,3 +127,25 @@ def test_camera_info_coefficient_count(tmp_path, model, n, ok):
             CvslamError, match=rf"{model} distortion takes .* coefficients, got {n}"
         ):
             logs.rig("uav1")
+
+
+def test_imu_schema_lacking_fields_is_an_error_naming_the_topic(tmp_path):
+    from mcap_ros2.writer import Writer
+
+    path = tmp_path / "a.mcap"
+    header = "std_msgs/Header header\n" + "=" * 80 + "\nMSG: std_msgs/Header\n"
+    header += "builtin_interfaces/Time stamp\nstring frame_id\n" + "=" * 80
+    header += "\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
+    with path.open("wb") as f:
+        w = Writer(f)
+        schema = w.register_msgdef("sensor_msgs/msg/Imu", header)  # no rates, no forces
+        for i in range(5):
+            t = S + i * 5_000_000
+            msg = {"header": {"stamp": {"sec": t // S, "nanosec": t % S}, "frame_id": "b"}}
+            w.write_message("/uav1/imu", schema, msg, log_time=t, publish_time=t)
+        w.finish()
+    logs = LogSet([McapLogSource(path)], load_config().logs)
+    with pytest.raises(
+        LogError, match=r"/uav1/imu: its sensor_msgs/msg/Imu messages lack the field"
+    ):
+        list(logs.records())
