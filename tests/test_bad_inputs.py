@@ -158,3 +158,26 @@ def test_extract_of_a_log_whose_images_never_pair_exits_1(tmp_path, cvslam):
     res = cvslam("-q", "extract", log, "-o", tmp_path / "run")
     _one_line(res, "vehicle uav1: no stereo pairs", "stereo_pair_tolerance_ms = 2 ms", "5 left")
     assert not list((tmp_path / "run").glob("features/*"))
+
+
+def test_read_only_file_system_is_found_before_the_work(run, cvslam, monkeypatch):
+    """(As root a read-only folder is writable; a read-only file system is not: simulated.)"""
+    import errno
+
+    import cvslam_cli.features.stage as extract_stage
+
+    real_open = os.open
+
+    def read_only(path, flags, *args):
+        if flags & os.O_CREAT:
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *args)
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work started before the outputs were checked")
+
+    monkeypatch.setattr(os, "open", read_only)
+    monkeypatch.setattr(extract_stage, "_extract", no_work)
+    logs = sorted(run.glob("*.mcap"))
+    res = cvslam("-q", "extract", *logs, "-o", run, "--force")
+    _one_line(res, run / "features", "Read-only file system")
