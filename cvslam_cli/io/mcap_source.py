@@ -86,6 +86,7 @@ class McapLogSource:
             self._summary_problem = scan.summary_problem
         self._topics: dict[str, TopicInfo] | None = None
         self._metadata: dict[str, dict[str, str]] | None = None
+        self._data_crc_checked = False
         self._decoders = DecoderFactory()
 
     # -- summary -----------------------------------------------------------------------
@@ -152,8 +153,9 @@ class McapLogSource:
                 if wanted is None or channel.topic in wanted:
                     n_read += 1
                     yield self._decode(schema, channel, message, decoders)
-            if self._indexed and not scan.damages:
-                scan.check_data_crc()
+            if self._indexed and not scan.damages and not self._data_crc_checked:
+                scan.check_data_crc()  # once per file: it reads the whole data section
+                self._data_crc_checked = True
             self._note_damage(scan, messages_read=n_read if wanted is None else None, log_it=True)
 
     def _note_damage(self, scan: McapScan, *, messages_read: int | None, log_it: bool) -> None:

@@ -321,3 +321,35 @@ def test_damaged_summary_or_index_is_named_and_costs_no_message(tmp_path):
         recs, warnings = _read(bad)
         assert any(expected in w for w in warnings), warnings
         assert _frame_stamps(recs) == _frame_stamps(ref)
+
+
+def test_damage_outside_the_chunks_contents_is_named(tmp_path):
+    """Flips the chunk CRCs cannot see are warnings too: a chunk header's time field (it
+    disagrees with the chunk's content and index) and, where the writer stored the data
+    section CRC, the file's Header record; every message read is intact."""
+    from mcap.reader import SeekingReader
+    from mcap_ros2.writer import Writer
+
+    path = tmp_path / "a.mcap"
+    with path.open("wb") as f:
+        w = Writer(f, chunk_size=2048)
+        w._writer._Writer__enable_data_crcs = True  # the library's option, off by default
+        schema = w.register_msgdef("std_msgs/msg/String", "string data")
+        for i in range(200):
+            w.write_message("/t", schema, {"data": f"m{i:04d}"}, log_time=i, publish_time=i)
+        w.finish()
+    with path.open("rb") as f:
+        reader = SeekingReader(f)
+        chunks = sorted(c.chunk_start_offset for c in reader.get_summary().chunk_indexes)
+        library = reader.get_header().library
+    data = path.read_bytes()
+    at_library = data.index(library.encode())
+    for flip, expected in (
+        (chunks[1] + 9 + 1, "the chunk disagrees with its header's time span"),
+        (at_library, "data section CRC mismatch outside the message payloads"),
+    ):
+        bad = tmp_path / "bad.mcap"
+        bad.write_bytes(data[:flip] + bytes([data[flip] ^ 0x01]) + data[flip + 1 :])
+        src = McapLogSource(bad)
+        assert [m.msg.data for m in src.messages()] == [f"m{i:04d}" for i in range(200)]
+        assert any(expected in w for w in src.warnings), src.warnings
