@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.install-stamp
 SHARED_DATA ?= $(if $(CVSLAM_SHARED_DATA),$(CVSLAM_SHARED_DATA),../shared/data)
 DEMO_DIR ?= runs/demo
 
-.PHONY: install test lint bench demo clean check-report
+.PHONY: install test lint bench demo clean check-report fuzz
 
 install: $(STAMP)
 
@@ -36,3 +36,9 @@ clean:
 # Render the demo's report in headless Chromium and check every image loaded (needs chromium).
 check-report: install
 	$(BIN)/python scripts/check_report.py $(DEMO_DIR)/run/eval/report.html
+
+# The MCAP reader's fuzz test over many damaged variants (40 run in `make test`);
+# `make fuzz FUZZ_VARIANTS=3000`, seed from CVSLAM_FUZZ_SEED (default 2026).
+FUZZ_VARIANTS ?= 600
+fuzz: install
+	CVSLAM_FUZZ_VARIANTS=$(FUZZ_VARIANTS) $(BIN)/python -m pytest -q -s -p no:cacheprovider tests/io/test_mcap_fuzz.py

@@ -11,6 +11,7 @@ import dataclasses
 import functools
 import json
 import logging
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -190,7 +191,19 @@ def _import_common(func: Callable[..., Any]) -> Callable[..., Any]:
         show_default=True,
         help="Vehicle name used in topic names (/<vehicle>/...).",
     )(func)
+    func = click.option("--force", is_flag=True, help="Replace an existing output file.")(func)
     return config_options(func)
+
+
+def _import_target(output: Path, force: bool) -> Path:
+    """`output`, checked before the import: an existing file is replaced only with `--force`
+    (and never anything that is not a regular file); its folder must be writable."""
+    from cvslam_cli.io.atomic import check_writable
+
+    if (output.exists() or output.is_symlink()) and not force:
+        raise CvslamError(f"{output}: already exists (use --force to replace it)")
+    check_writable([output])
+    return output
 
 
 def _report_import(summary: Any, cfg: Config) -> None:
@@ -214,10 +227,11 @@ def _report_import(summary: Any, cfg: Config) -> None:
 @import_.command(name="euroc")
 @click.argument("mav0_dir", type=click.Path(path_type=Path))
 @_import_common
-def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, cfg: Config) -> None:
+def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, force: bool, cfg: Config) -> None:
     """Import an EuRoC MAV (ASL folder layout) MAV0_DIR into an MCAP log."""
     from cvslam_cli.io.importers.euroc import import_euroc
 
+    output = _import_target(output, force)
     _report_import(
         import_euroc(mav0_dir, output, vehicle, progress=log.isEnabledFor(logging.INFO)), cfg
     )
@@ -234,11 +248,12 @@ def import_euroc_cmd(mav0_dir: Path, output: Path, vehicle: str, cfg: Config) ->
 )
 @_import_common
 def import_kitti_cmd(
-    seq_dir: Path, rate_hz: float, output: Path, vehicle: str, cfg: Config
+    seq_dir: Path, rate_hz: float, output: Path, vehicle: str, force: bool, cfg: Config
 ) -> None:
     """Import a KITTI odometry sequence folder SEQ_DIR into an MCAP log."""
     from cvslam_cli.io.importers.kitti import import_kitti
 
+    output = _import_target(output, force)
     _report_import(
         import_kitti(
             seq_dir, output, vehicle, rate_hz=rate_hz, progress=log.isEnabledFor(logging.INFO)
@@ -705,13 +720,28 @@ def run_cmd(
 # ----------------------------------------------------------------------------- entry
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that the stage unwinds like on Ctrl-C."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
 def main(argv: Sequence[str] | None = None) -> None:
-    """Console entry point with the one error boundary."""
+    """Console entry point with the one error boundary; Ctrl-C exits 130, SIGTERM 143,
+    both after the stage has unwound (partial outputs removed, workers shut down)."""
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         rc = cli.main(
             args=list(argv) if argv is not None else None, prog_name="cvslam", standalone_mode=False
         )
-    except click.exceptions.Abort:
+    except _Terminated:
+        click.echo("cvslam: terminated", err=True)
+        sys.exit(143)
+    except click.exceptions.Abort as exc:
+        if isinstance(exc.__cause__, EOFError):  # click turns every EOFError into Abort:
+            raise exc.__cause__ from None  # one not from the terminal is a bug, not Ctrl-D
         click.echo("cvslam: interrupted", err=True)
         sys.exit(130)
     except click.ClickException as exc:
@@ -723,4 +753,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     except KeyboardInterrupt:
         click.echo("cvslam: interrupted", err=True)
         sys.exit(130)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     sys.exit(rc if isinstance(rc, int) else 0)

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
+import re
 import types
 import typing
 from collections.abc import Mapping
@@ -32,10 +34,17 @@ DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "defa
 
 
 def opt(
-    default: Any, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False
+    default: Any,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
+    at_most: str | None = None,
 ) -> Any:
-    """A dataclass field with an optional numeric range (`lo`, `hi`; `lo_open`: lo excluded)."""
-    meta = {"lo": lo, "hi": hi, "lo_open": lo_open}
+    """A dataclass field with an optional numeric range (`lo`, `hi`; `lo_open`: lo excluded);
+    `at_most`: the sibling field this one may not exceed (the low end of a pair, e.g.
+    `layers_min` of `layers_max`), checked on the resolved config."""
+    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "at_most": at_most}
     if isinstance(default, (dict, list, tuple)) or dataclasses.is_dataclass(default):
         return field(default_factory=lambda: copy.deepcopy(default), metadata=meta)
     return field(default=default, metadata=meta)
@@ -144,11 +153,11 @@ class AdaptiveSiftConfig:
     enabled: bool = True
     dog_rms_ref: float = opt(0.01, lo=0.0, lo_open=True)
     contrast_per_rms: float = opt(2.0, lo=0.0, lo_open=True)
-    layers_min: int = opt(2, lo=1, hi=10)
+    layers_min: int = opt(2, lo=1, hi=10, at_most="layers_max")
     layers_max: int = opt(6, lo=1, hi=10)
-    contrast_min: float = opt(0.002, lo=0.0, lo_open=True)
+    contrast_min: float = opt(0.002, lo=0.0, lo_open=True, at_most="contrast_max")
     contrast_max: float = opt(0.08, lo=0.0, lo_open=True)
-    features_min: int = opt(150, lo=0)
+    features_min: int = opt(150, lo=0, at_most="features_max")
     features_max: int = opt(1200, lo=1)
     retry_factor: float = opt(0.5, lo=0.0, hi=1.0, lo_open=True)
 
@@ -413,6 +422,10 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
         if not isinstance(raw, Mapping):
             _fail(source, path, "a mapping", raw)
         _, val_tp = typing.get_args(tp)
+        for k in raw:
+            problem = file_name_problem(str(k))
+            if problem is not None:  # the keys (vehicle names) become file names
+                raise ConfigError(f"{source}: {path}.{k}: {problem}")
         return {str(k): _convert(val_tp, v, f"{path}.{k}", source, {}) for k, v in raw.items()}
     if origin is tuple:
         if not isinstance(raw, (list, tuple)):
@@ -442,8 +455,8 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
         if hi is not None:
             expected += f" <= {hi}" if lo is None else f" and <= {hi}"
         ok = isinstance(raw, int) if tp is int else isinstance(raw, (int, float))
-        if not ok or isinstance(raw, bool) or (tp is float and raw != raw):  # NaN check
-            _fail(source, path, expected, raw)
+        if not ok or isinstance(raw, bool) or (tp is float and not math.isfinite(raw)):
+            _fail(source, path, expected.replace("a ", "a finite ", 1) if ok else expected, raw)
         value = tp(raw)
         if (lo is not None and (value < lo or (meta.get("lo_open") and value == lo))) or (
             hi is not None and value > hi
@@ -451,6 +464,28 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
             _fail(source, path, expected, raw)
         return value
     raise TypeError(f"config type {tp!r} at {path} is not supported")  # a bug in the schema
+
+
+# The longest file name made of a name is `<name>_deadreckoning.tum.partial`; 255 bytes
+# is the limit of the common file systems, so names stay well below it.
+MAX_NAME_BYTES = 200
+_FILE_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+-]*$")
+
+
+def file_name_problem(name: str) -> str | None:
+    """Why `name` (a vehicle's, which becomes part of file names) cannot be used in a file
+    name: empty, a path separator or other character outside letters, digits and `_.+-`,
+    or too long; None when it can."""
+    if not _FILE_NAME_RE.match(name):
+        return (
+            f"the name {name[:60]!r} cannot be part of a file name (expected letters, digits "
+            "and _ . + -, starting with a letter, digit or _)"
+        )
+    if len(name.encode()) > MAX_NAME_BYTES:
+        return (
+            f"the name is {len(name.encode())} bytes long, at most {MAX_NAME_BYTES} fit a file name"
+        )
+    return None
 
 
 def build_dataclass(cls: type, raw: Mapping[str, Any], path: str, source: str) -> Any:
@@ -565,7 +600,39 @@ def load_config(
         build_dataclass(Config, _expand_vehicles(raw), "", name)
         merged = deep_merge(merged, raw)
     merged = _expand_vehicles(merged)
-    return build_dataclass(Config, merged, "", "config")
+    cfg = build_dataclass(Config, merged, "", "config")
+    _check_pairs(cfg, "", [(name, _expand_vehicles(raw)) for name, raw in sources])
+    return cfg
+
+
+def _check_pairs(node: Any, path: str, sources: list[tuple[str, dict[str, Any]]]) -> None:
+    """Every `at_most` pair of the resolved config in order; ConfigError naming the sources
+    that set either key (or the defaults) and both values."""
+    if isinstance(node, Mapping):
+        for k, v in node.items():
+            _check_pairs(v, f"{path}.{k}", sources)
+        return
+    if not dataclasses.is_dataclass(node):
+        return
+    for f in dataclasses.fields(node):
+        sub = f"{path}.{f.name}" if path else f.name
+        other = f.metadata.get("at_most")
+        if other is not None and getattr(node, f.name) > getattr(node, other):
+            keys = (sub, f"{path}.{other}" if path else other)
+            setters = [n for n, raw in sources if any(_has_key(raw, k) for k in keys)]
+            raise ConfigError(
+                f"{', '.join(setters) or 'the defaults'}: {keys[0]} = {getattr(node, f.name)} "
+                f"is above {keys[1]} = {getattr(node, other)} (expected {f.name} <= {other})"
+            )
+        _check_pairs(getattr(node, f.name), sub, sources)
+
+
+def _has_key(raw: Any, dotted: str) -> bool:
+    for part in dotted.split("."):
+        if not isinstance(raw, Mapping) or part not in raw:
+            return False
+        raw = raw[part]
+    return True
 
 
 def dump_config(cfg: Config) -> str:

@@ -5,15 +5,29 @@ locks (OpenCV's and BLAS's thread pools, tqdm's monitor), and deadlocks when it 
 them. Read-only state the jobs need (a world, rigs, a config) is pickled once per worker
 into `STATE` by the initializer instead of once per job. Each worker runs OpenCV single-
 threaded: the parallelism is across jobs.
+
+The pool is `concurrent.futures.ProcessPoolExecutor`, which watches its workers: one that
+dies (killed, out of memory, a crash in native code) breaks the pool at once, and the map
+raises `WorkerError` naming the job it was waiting for instead of waiting forever. Workers
+ignore SIGINT and SIGTERM, so Ctrl-C (sent to the whole process group) and SIGTERM reach only
+the main process, which cancels the jobs not started, lets the running ones finish and shuts
+the pool down (no worker traceback, no semaphore left behind); `cli.main` turns SIGTERM into
+the same unwinding as Ctrl-C. A worker killed with SIGKILL is the WorkerError above.
 """
 
 from __future__ import annotations
 
+import collections
 import multiprocessing
+import signal
 from collections.abc import Callable, Iterable, Iterator, Mapping
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
 import cv2
+
+from cvslam_cli.errors import CvslamError
 
 J = TypeVar("J")
 R = TypeVar("R")
@@ -21,7 +35,14 @@ R = TypeVar("R")
 STATE: dict[str, Any] = {}
 
 
+class WorkerError(CvslamError):
+    """A worker process died (was killed, ran out of memory, crashed) before its job ended."""
+
+
 def _init(state: Mapping[str, Any]) -> None:
+    # Ctrl-C and SIGTERM sent to the whole process group are the main process's to handle
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     cv2.setNumThreads(1)
     STATE.clear()
     STATE.update(state)
@@ -33,10 +54,13 @@ def ordered_map(
     *,
     workers: int,
     state: Mapping[str, Any],
-    chunksize: int = 2,
+    describe: Callable[[J], str] = lambda job: "a job",
+    ahead: int = 4,
 ) -> Iterator[R]:
     """`fn(job)` for every job, in order; `fn` (a module-level function) reads `STATE`.
-    With `workers <= 1` everything runs in this process."""
+    With `workers <= 1` everything runs in this process. At most `ahead` jobs per worker
+    are queued at once, so a long stream of jobs does not pile up in memory. `describe(job)`
+    names a job in the error raised when a worker dies."""
     if workers <= 1:
         saved = dict(STATE)
         STATE.clear()
@@ -48,5 +72,33 @@ def ordered_map(
             STATE.update(saved)
         return
     ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init, initargs=(dict(state),)) as pool:
-        yield from pool.imap(fn, jobs, chunksize=chunksize)
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(dict(state),))
+    pending: collections.deque[tuple[J, Future[R]]] = collections.deque()
+    try:
+        it = iter(jobs)
+        for job in it:
+            try:
+                future = pool.submit(fn, job)
+            except BrokenProcessPool:  # it broke since the last result: name the oldest job
+                raise _died(pending[0][0] if pending else job, describe) from None
+            pending.append((job, future))
+            if len(pending) >= workers * ahead:
+                yield _result(*pending.popleft(), describe)
+        while pending:
+            yield _result(*pending.popleft(), describe)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _result(job: J, future: Future[R], describe: Callable[[J], str]) -> R:
+    try:
+        return future.result()
+    except BrokenProcessPool:
+        raise _died(job, describe) from None
+
+
+def _died(job: J, describe: Callable[[J], str]) -> WorkerError:
+    return WorkerError(
+        f"a worker process died (killed, or out of memory) while working on "
+        f"{describe(job)} or a job beside it"
+    )

@@ -10,7 +10,7 @@ import numpy as np
 
 from cvslam_cli.geometry.camera import CameraModel, translation_T
 from cvslam_cli.geometry.rotations import make_T
-from cvslam_cli.io.mcap_writer import LogWriter
+from cvslam_cli.io.mcap_writer import LogWriter, camera_info_fields, header, raw_fields
 from cvslam_cli.records.features import (
     DESCRIPTOR_SIZE,
     FeatureSet,
@@ -189,3 +189,47 @@ def feature_set(seed: int = 0) -> FeatureSet:
             _feature_matches(rng, m, max(nl, 1), max(nr, 1)),
         )
     return b.build()
+
+
+def write_image_log(
+    path: Path,
+    stamps_ns: list[int],
+    *,
+    sizes: list[tuple[int, int]] | None = None,
+    vehicle: str = "uav1",
+    seed: int = 0,
+    repeat_content: bool = True,
+) -> Path:
+    """A stereo log with one left/right pair (and CameraInfo) per entry of `stamps_ns`,
+    recorded in that order at 20 Hz from log time 1 s (so header stamps may repeat, go
+    backwards or be absurd); a repeated stamp repeats its images (a duplicated message) when
+    `repeat_content`; `sizes`: (width, height) per pair (default 64x48; the CameraInfo stays
+    64x48)."""
+    rng = np.random.default_rng(seed)
+    lf, rf = f"{vehicle}/left_camera_optical", f"{vehicle}/right_camera_optical"
+    left_cam, right_cam = camera(frame_id=lf), camera(right=True, frame_id=rf)
+    seen: dict[tuple[int, str], np.ndarray] = {}
+    with LogWriter(path) as log:
+        log.write_tf_static(
+            "/tf_static",
+            max(0, min(stamps_ns)),
+            [
+                (f"{vehicle}/base_link", lf, left_cam.T_body_cam),
+                (f"{vehicle}/base_link", rf, right_cam.T_body_cam),
+            ],
+        )
+        for i, stamp in enumerate(stamps_ns):
+            w, h = sizes[i] if sizes else (64, 48)
+            log_time = 10**9 + i * 50_000_000  # recorded in order, 20 Hz, whatever the stamps
+            for side, cam in (("left", left_cam), ("right", right_cam)):
+                img = rng.integers(0, 256, size=(h, w), dtype=np.uint8)
+                if repeat_content:
+                    img = seen.setdefault((stamp, side), img)
+                fields = {"header": header(stamp, cam.frame_id), **raw_fields(img)}
+                topic = f"/{vehicle}/stereo/{side}"
+                log.write(f"{topic}/image_raw", "sensor_msgs/msg/Image", fields, stamp, log_time)
+                info = camera_info_fields(cam, stamp)
+                log.write(
+                    f"{topic}/camera_info", "sensor_msgs/msg/CameraInfo", info, stamp, log_time
+                )
+    return path

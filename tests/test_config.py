@@ -119,3 +119,56 @@ def test_bad_overrides_name_the_option():
         load_config(overrides=["nothing.here=1"])
     with pytest.raises(ConfigError, match=r"file\.yaml: not found, expected a config file"):
         load_config(["/no/such/file.yaml"])
+
+
+# -- values checked where they enter (issue 16) ------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "logs.stereo_pair_tolerance_ms=.inf",
+        "logs.reorder_window_ms=-.inf",
+        "extract.stereo.pixel_sigma_px=.inf",
+        "extract.stereo.z_min_m=.inf",
+        "fuse.hinf.gamma=.nan",
+    ],
+)
+def test_infinite_and_nan_values_are_refused_naming_the_key(override):
+    key = override.split("=")[0]
+    with pytest.raises(
+        ConfigError, match=rf"--set {re.escape(override)}: {key}: expected a finite"
+    ):
+        load_config(overrides=[override])
+
+
+def test_min_above_max_is_refused_naming_both_keys_and_the_source(tmp_path):
+    with pytest.raises(
+        ConfigError,
+        match=r"--set extract.adaptive.layers_min=9: extract.adaptive.layers_min = 9 is above "
+        r"extract.adaptive.layers_max = 6",
+    ):
+        load_config(overrides=["extract.adaptive.layers_min=9"])
+    f = tmp_path / "c.yaml"
+    f.write_text("extract: {adaptive: {features_max: 100}}\n")
+    with pytest.raises(ConfigError, match=rf"{f}: extract.adaptive.features_min = 150 is above"):
+        load_config([f])
+    with pytest.raises(ConfigError, match=r"contrast_min = 0\.5 is above"):
+        load_config(overrides=["extract.adaptive.contrast_min=0.5"])
+    # a pair moved together, in either order, is fine: only the resolved config is checked
+    cfg = load_config(overrides=["extract.adaptive.layers_max=9", "extract.adaptive.layers_min=8"])
+    assert (cfg.extract.adaptive.layers_min, cfg.extract.adaptive.layers_max) == (8, 9)
+
+
+@pytest.mark.parametrize(
+    ("name", "why"),
+    [
+        ("team/uav1", "cannot be part of a file name"),
+        ("-rf", "cannot be part of a file name"),
+        ("a" * 300, "300 bytes long"),
+    ],
+)
+def test_vehicle_names_must_be_safe_file_names(name, why):
+    with pytest.raises(ConfigError, match=rf"logs.vehicles.{re.escape(name[:20])}.*{why}"):
+        load_config(overrides=[f"logs.vehicles.{name}.kind=uav"])
+    assert load_config(overrides=["logs.vehicles.uav-1.kind=uav"]).logs.vehicles["uav-1"]

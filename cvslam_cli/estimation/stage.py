@@ -60,7 +60,7 @@ from cvslam_cli.geometry.rotations import (
     quat_xyzw_to_matrix,
     so3_log,
 )
-from cvslam_cli.io.atomic import atomic_dir
+from cvslam_cli.io.atomic import atomic_dir, check_writable
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import (
     save_pose_covariances,
@@ -69,7 +69,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
     write_result_mcap,
 )
-from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, with_run_bindings
+from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, require_logs, with_run_bindings
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
@@ -425,18 +425,14 @@ def _write_outputs(
     write_result_mcap(out.result_mcap, tables, table, deadreckoning=dr_tables, metadata=meta)
 
 
-def _header(kind: str, run_dir: Path) -> str:
-    return f"cvslam {__version__} fuse ({kind}), nav frame NED, body FRD; run {run_dir.resolve()}"
+def _header(kind: str) -> str:
+    """The trajectory files' first line (no path: a run gives the same bytes wherever it is)."""
+    return f"cvslam {__version__} fuse ({kind}), nav frame NED, body FRD"
 
 
-def _metadata(kind: str, single: bool, run_dir: Path) -> dict[str, str]:
-    """The run's description in result.mcap."""
-    return {
-        "filter": kind,
-        "mode": _mode(single),
-        "cvslam_version": __version__,
-        "run_dir": str(run_dir.resolve()),
-    }
+def _metadata(kind: str, single: bool) -> dict[str, str]:
+    """The run's description in result.mcap (no path, like `_header`)."""
+    return {"filter": kind, "mode": _mode(single), "cvslam_version": __version__}
 
 
 def _mode(single: bool) -> str:
@@ -565,12 +561,14 @@ def run(
     files, features, metas = _load_features(layout)
     cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
     logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
+    require_logs(logs_used)  # a missing log named before the plan reads it
     rd = RunDir(run_dir)
     outputs = _outputs(out, list(features))
     plan = rd.plan(out.name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)
     if plan.action == "skip":
         log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out.path)
         return FuseSummary(out.path, True, kind, single, {}, 0, 0.0, 0.0, 0)
+    check_writable(outputs)  # before the work: a read-only folder, a name too long
     logs = open_logs(logs_used, cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     settings = slam_settings(cfg.fuse, kind)
@@ -581,9 +579,7 @@ def run(
     _refuse_diverged(res, inputs, layout, out.name, kind)
     span_s = max((v.features.frame_stamp_ns[-1] - v.start_ns) * 1e-9 for v in inputs)
     with atomic_dir(out.path) as tmp:
-        _write_outputs(
-            FuseFolder(tmp), res, dr, _header(kind, run_dir), _metadata(kind, single, run_dir)
-        )
+        _write_outputs(FuseFolder(tmp), res, dr, _header(kind), _metadata(kind, single))
     vehicles = {v.name: _vehicle_fuse(v, res, dr[v.name], truth[v.name]) for v in inputs}
     summary = FuseSummary(
         out.path,

@@ -38,7 +38,7 @@ from cvslam_cli.evaluation import figures as figs
 from cvslam_cli.evaluation import metrics as mtr
 from cvslam_cli.evaluation.report import FigureEntry, render_report
 from cvslam_cli.geometry.nav_frames import table_to_nav
-from cvslam_cli.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
+from cvslam_cli.io.atomic import atomic_dir, check_writable, write_bytes_atomic, write_text_atomic
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
 from cvslam_cli.io.logs import (
@@ -494,14 +494,15 @@ def _provenance(
 ) -> dict[str, str]:
     """Where the report's data came from: the truth's files, the stages that made the
     estimates and mosaics."""
-    provenance = {
-        "run directory": str(rd.path.resolve()),
+    layout = RunLayout(rd.path)
+    inputs = layout.relative_inputs([input_record(p) for p in truth_files])
+    provenance = {  # paths relative to the run: the report is the same wherever the run is
         "ground truth": truth_source,
         "cvslam version": __version__,
         "evaluated": time.strftime("%Y-%m-%d %H:%M:%S %z"),
         "alignment": align,
         **{f"input {r['path']}": f"sha256 {r['sha256'][:16]}..., {r['size']} bytes"
-           for r in map(input_record, truth_files)},
+           for r in inputs},
     }  # fmt: skip
     stages = rd.load().get("stages", {})
     for name in (*(r.name for r in runs), MOSAIC, EXTRACT_STAGE):
@@ -588,6 +589,7 @@ def run(
         log.info("eval: %s is up to date (same config and inputs); --force to redo it", out.path)
         old = pd.read_csv(out.headline_csv, index_col=0)
         return EvalSummary(run_dir, out.path, True, old, pd.read_csv(out.metrics_csv))
+    check_writable(outputs)  # before the work: a read-only folder, a name too long
     estimates = [e for e in _estimates(runs, vehicles) if e.vehicle in truth]
     rows, nees_of = _all_metrics(estimates, truth, truth_source, cfg.eval)
     metrics = pd.DataFrame(rows)

@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, ExtractConfig
-from cvslam_cli.errors import CvslamError
+from cvslam_cli.errors import CvslamError, LogError
 from cvslam_cli.features.matching import match_stereo
 from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
 from cvslam_cli.features.windows import auto_z_min_m, undistort_keypoints
@@ -40,7 +40,7 @@ from cvslam_cli.geometry.stereo import (
     triangulate,
     triangulation_covariance,
 )
-from cvslam_cli.io.atomic import write_text_atomic
+from cvslam_cli.io.atomic import check_writable, write_text_atomic
 from cvslam_cli.io.features_file import save_features
 from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs
 from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
@@ -177,6 +177,10 @@ def _job(args: tuple[str, int, np.ndarray, np.ndarray]) -> tuple[str, int, tuple
     return vehicle, stamp, process_frame(left, right, STATE["rigs"][vehicle], STATE["cfg"])
 
 
+def _describe_job(args: tuple[str, int, np.ndarray, np.ndarray]) -> str:
+    return f"the {args[0]} frame at stamp {args[1]} ns"
+
+
 def _frames(logs: LogSet, vehicles: list[str]) -> Iterator[tuple[str, int, np.ndarray, np.ndarray]]:
     for rec in logs.records(vehicles=vehicles, roles=("left_image", "right_image")):
         if isinstance(rec, StereoFrame):
@@ -243,7 +247,11 @@ def _extract(
         total=total, desc="extract", unit="pair", disable=None if progress else True, leave=False
     ) as bar:
         for vehicle, stamp, (left, right, matches, stats) in ordered_map(
-            _job, _frames(logs, vehicles), workers=workers, state={"rigs": rigs, "cfg": cfg}
+            _job,
+            _frames(logs, vehicles),
+            workers=workers,
+            state={"rigs": rigs, "cfg": cfg},
+            describe=_describe_job,
         ):
             builders[vehicle].add_frame(stamp, left, right, matches)
             rows[vehicle].append({"stamp_ns": stamp, **stats})
@@ -289,15 +297,25 @@ def run(
     if plan.action == "skip":
         log.info("extract: %s is up to date (same config and inputs); --force to redo it", run_dir)
         return ExtractSummary(run_dir, True, {})
+    check_writable(outputs)  # before the work: a read-only folder, a name too long
     rigs = {v: logs.rig(v) for v in vehicles}
     _log_stereo_limits(rigs, cfg.extract)
     done = _extract(logs, rigs, cfg.extract, workers, progress)
+    for v in vehicles:
+        if not done.rows[v]:
+            vs = logs.stats[v]
+            raise LogError(
+                f"{logs.names}: vehicle {v}: no stereo pairs (no left and right image within "
+                f"logs.stereo_pair_tolerance_ms = {cfg.logs.stereo_pair_tolerance_ms:g} ms of "
+                f"each other; {vs.unpaired_left} left and {vs.unpaired_right} right images "
+                "unpaired); nothing written"
+            )
     summaries: dict[str, VehicleExtract] = {}
     for v in vehicles:
         meta = {
             "producer": f"cvslam extract {__version__}",
             "vehicle": v,
-            "inputs": plan.inputs,
+            "inputs": layout.relative_inputs(plan.inputs),
             "config": plan.sections["extract"],
         }
         save_features(done.builders[v].build(), layout.feature_file(v), meta)

@@ -18,6 +18,12 @@ from cvslam_cli.records.arrays import F64
 from cvslam_cli.records.features import RigCalibration
 
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "none")
+# How many coefficients each model takes (OpenCV's accepted lengths; ROS writes 5, 8 and 4).
+DISTORTION_COEFFICIENTS = {
+    "plumb_bob": (4, 5),
+    "rational_polynomial": (8, 12, 14),
+    "equidistant": (4,),
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,6 +90,14 @@ class CameraModel:
                 f"{self.distortion_model!r} (expected one of "
                 f"{', '.join(DISTORTION_MODELS)})"
             )
+        counts = DISTORTION_COEFFICIENTS.get(self.distortion_model)
+        if counts is not None and np.asarray(self.D).size not in counts:
+            raise CalibrationError(
+                f"{name}: {self.distortion_model} distortion takes "
+                f"{' or '.join(map(str, counts))} coefficients, got {np.asarray(self.D).size}"
+            )
+        if self.distortion_model == "none" and np.any(np.asarray(self.D) != 0):
+            raise CalibrationError(f"{name}: distortion model 'none' with non-zero coefficients")
         if not np.all(np.isfinite(self.D)):
             raise CalibrationError(f"{name}: distortion coefficients are not finite")
         if not is_rotation(self.T_body_cam[:3, :3], tol=1e-4):

@@ -14,6 +14,8 @@ takes one or more `LogSource`s and the `logs` config section and composes:
   `OdometryRecord`, `PoseRecord`, its world frame converted to NED by
   `geometry/nav_frames.py`; images decoded by `images.py`, their stamps moved by the rig's
   `camera_time_offset_ns`);
+- `stamp_screen.py`: messages whose stamps cannot be used (before 1970, astray, duplicated,
+  out of order beyond the window) dropped and counted;
 - `stereo_pairing.py`: left and right images whose stamps differ by at most the tolerance
   paired into `StereoFrame`s;
 - `log_stats.py`: per-topic statistics (counts, rates, gaps, stamps going backwards, samples
@@ -43,13 +45,15 @@ from cvslam_cli.io.mcap_source import LogSource, RawMessage, TopicInfo
 from cvslam_cli.io.ros_messages import CONVERTERS, stamp_ns_of
 from cvslam_cli.io.run_layout import EXTRACT_STAGE
 from cvslam_cli.io.rundir import RunDir
+from cvslam_cli.io.stamp_screen import StampScreen
 from cvslam_cli.io.stereo_pairing import StereoPairer
 from cvslam_cli.io.topic_map import map_topics
-from cvslam_cli.records.log import ImageRecord, PoseRecord, Record
+from cvslam_cli.records.log import ImageRecord, ImuSample, OdometryRecord, PoseRecord, Record
 from cvslam_cli.records.poses import PoseTable
 
 _IMAGE_ROLES = ("left_image", "right_image")
 _UNBOUND = VehicleConfig()
+_RECORD_ROLES = {ImuSample: "imu", OdometryRecord: "odom", PoseRecord: "ground_truth"}
 
 
 class LogSet:
@@ -71,6 +75,7 @@ class LogSet:
         self.stats = {name: VehicleStats() for name in self.vehicles}
         self._calibration = Calibration(self.sources, self._topics, cfg, self.names)
         self.peak_buffered = 0  # most records held by the reorder window at once
+        self._resized: set[str] = set()  # image topics whose size changed (reported once)
         self.problems.add_source_warnings(self.sources, log_warning=True)
 
     @property
@@ -111,18 +116,39 @@ class LogSet:
         pairer = StereoPairer(int(self.cfg.stereo_pair_tolerance_ms * 1e6), self.stats, image_roles)
         self._source_of = {}
         wanted = self._topics.wanted(selected, roles)
+        screen = StampScreen()
         for i, raw in merged_messages(self.sources, wanted):
-            rec = self._convert(i, raw, rigs)
+            key = (self._topics.role_of[(i, raw.topic)][0], raw.topic)
+            try:
+                if not screen.arrived(key, stamp_ns_of(raw.msg), raw.log_time_ns, raw.msg):
+                    continue
+                rec = self._convert(i, raw, rigs)
+            except AttributeError as exc:  # a schema of that name without the fields it has
+                raise LogError(
+                    f"{self.names}: {raw.topic}: its {raw.schema_name or 'schema'} messages lack "
+                    f"the field {exc.name!r} (a schema other than the ROS 2 one)"
+                ) from None
             if rec is None:
                 continue
             window.push(rec)
             self.peak_buffered = max(self.peak_buffered, window.peak)
             for ready in window.released():
-                yield from pairer.push(ready)
+                if self._in_order(screen, ready):
+                    yield from pairer.push(ready)
         for ready in window.drain():
-            yield from pairer.push(ready)
+            if self._in_order(screen, ready):
+                yield from pairer.push(ready)
         pairer.finish()
+        for text in screen.problems(self.names):
+            self.problems.report("warning", text)
         self.problems.add_source_warnings(self.sources, log_warning=False)
+
+    def _in_order(self, screen: StampScreen, rec: Record | ImageRecord) -> bool:
+        """Whether a record the reorder window released is still in time order."""
+        if isinstance(rec, ImageRecord):
+            return screen.released((rec.vehicle, rec.topic), rec.stamp_ns)
+        topic = self.vehicles[rec.vehicle].topic(_RECORD_ROLES[type(rec)])
+        return screen.released((rec.vehicle, topic), rec.stamp_ns)
 
     def _convert(
         self, i: int, raw: RawMessage, rigs: dict[str, StereoRig | CvslamError]
@@ -192,7 +218,20 @@ class LogSet:
             self.problems.report("error", f"{self.names}: {raw.topic}: {exc}")
             return None
         first = ts.image_size is None
-        ts.image_size = (img.shape[1], img.shape[0])
+        size = (img.shape[1], img.shape[0])
+        if not first and size != ts.image_size:
+            assert ts.image_size is not None
+            if raw.topic in self._resized:
+                return None  # reported at its first image of another size
+            self._resized.add(raw.topic)
+            self.problems.report(
+                "error",
+                f"{self.names}: {raw.topic}: image size changes from "
+                f"{ts.image_size[0]}x{ts.image_size[1]} to {size[0]}x{size[1]} at stamp "
+                f"{stamp_ns} ns (one calibration cannot serve both)",
+            )
+            return None
+        ts.image_size = size
         ts.encoding = enc
         if not self.vehicles[vehicle].has_stereo:
             return None  # a lone camera: counted, never paired
@@ -238,6 +277,13 @@ def with_run_bindings(cfg: LogsConfig, run_dir: Path) -> LogsConfig:
         if isinstance(v, dict) and v.get("log") and not cfg.vehicles.get(name, _UNBOUND).log
     }
     return bind_logs(cfg, bound)
+
+
+def require_logs(paths: Sequence[Path]) -> None:
+    """LogError naming the first of `paths` that does not exist (before any work uses them)."""
+    for p in paths:
+        if not Path(p).exists():
+            raise LogError(f"{p}: file not found")
 
 
 def open_logs(paths: Sequence[Path], cfg: LogsConfig, *, strict: bool = True) -> LogSet:

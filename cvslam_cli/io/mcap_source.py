@@ -3,9 +3,12 @@
 `LogSource` is the protocol the rest of the package reads through (tests feed records
 directly); `McapLogSource` implements it with the `mcap` and `mcap-ros2-support` libraries.
 
-An indexed file is read chunk by chunk in log-time order through its summary; a file with no
-usable summary (a recorder that was killed, a copy cut short) is read front to back up to the
-first damaged record, and a warning says how many bytes were lost. Nothing holds more than
+A file with a sound summary is read chunk by chunk in log-time order through its chunk index;
+one without (a recorder that was killed, a copy cut short, a damaged summary) is read front to
+back. Either way every chunk is checked against its CRC before its messages are used, and a
+damaged one is skipped, the reading going on at the next sound chunk (`mcap_scan.py`); each
+loss is a warning naming the bytes, the topics, the message counts and the log-time span lost.
+A file in which nothing usable is left is an error naming the damage. Nothing holds more than
 the chunks being read, so memory does not grow with the length of the log.
 """
 
@@ -16,19 +19,15 @@ import os
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, Protocol
+from typing import Any, Protocol
 
-from mcap.exceptions import McapError
-from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from cvslam_cli.errors import LogError
+from cvslam_cli.io.mcap_scan import MCAP_MAGIC, McapScan
 
 log = logging.getLogger("cvslam")
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 @dataclass(frozen=True)
@@ -82,40 +81,31 @@ class McapLogSource:
             raise LogError(f"{self.name}: cannot read ({exc.strerror})") from None
         if head != MCAP_MAGIC:
             raise LogError(f"{self.name}: not an MCAP file (bad magic bytes)")
-        self._size = self.path.stat().st_size
-        self._indexed = self._has_summary()
+        with McapScan(self.path) as scan:
+            self._indexed = scan.indexed
+            self._summary_problem = scan.summary_problem
         self._topics: dict[str, TopicInfo] | None = None
         self._metadata: dict[str, dict[str, str]] | None = None
+        self._data_crc_checked = False
         self._decoders = DecoderFactory()
 
     # -- summary -----------------------------------------------------------------------
 
-    def _has_summary(self) -> bool:
-        try:
-            with self.path.open("rb") as f:
-                summary = SeekingReader(f).get_summary()
-        except (McapError, ValueError, EOFError, OSError, KeyError):
-            summary = None
-        return bool(summary and summary.chunk_indexes and summary.statistics)
-
     def topics(self) -> dict[str, TopicInfo]:
         if self._topics is None:
+            self._topics = {}
             if self._indexed:
-                with self.path.open("rb") as f:
-                    summary = SeekingReader(f).get_summary()
-                    assert summary is not None and summary.statistics is not None
-                    counts = summary.statistics.channel_message_counts
-                    self._topics = {}
-                    for cid, ch in summary.channels.items():
-                        schema = summary.schemas.get(ch.schema_id)
+                with McapScan(self.path) as scan:
+                    assert scan.statistics is not None
+                    counts = scan.statistics.channel_message_counts
+                    for cid, ch in scan.channels.items():
+                        schema = scan.schemas.get(ch.schema_id)
                         info = TopicInfo(
                             ch.topic, schema.name if schema else "", counts.get(cid, 0)
                         )
                         self._add_topic(info)
             else:
-                self._topics = {}
-                for ch, schema, count in self._scan_channels():
-                    self._add_topic(TopicInfo(ch.topic, schema.name if schema else "", count))
+                self._scan_unindexed()
         return self._topics
 
     def _add_topic(self, info: TopicInfo) -> None:
@@ -125,22 +115,27 @@ class McapLogSource:
             info = TopicInfo(info.topic, info.schema_name, old.message_count + info.message_count)
         self._topics[info.topic] = info
 
-    def _scan_channels(self) -> list[tuple[Channel, Schema | None, int]]:
+    def _scan_unindexed(self) -> None:
+        """Topics, counts and metadata of a file without a sound summary, in one pass."""
         found: dict[int, tuple[Channel, Schema | None]] = {}
         counts: dict[int, int] = {}
-        with self.path.open("rb") as f:
-            for schema, channel, _ in self._stream_messages(f, warn=False):
+        with McapScan(self.path) as scan:
+            for schema, channel, _ in scan.stream_messages():
                 found[channel.id] = (channel, schema)
                 counts[channel.id] = counts.get(channel.id, 0) + 1
-        return [(ch, schema, counts[cid]) for cid, (ch, schema) in found.items()]
+            self._metadata = {m.name: dict(m.metadata) for m in scan.streamed_metadata}
+            self._note_damage(scan, messages_read=sum(counts.values()), log_it=False)
+        for cid, (ch, schema) in found.items():
+            self._add_topic(TopicInfo(ch.topic, schema.name if schema else "", counts[cid]))
 
     def metadata(self) -> dict[str, dict[str, str]]:
         if self._metadata is None:
-            self._metadata = {}
             if self._indexed:
-                with self.path.open("rb") as f:
-                    for m in SeekingReader(f).iter_metadata():
-                        self._metadata[m.name] = dict(m.metadata)
+                with McapScan(self.path) as scan:
+                    self._metadata = {m.name: dict(m.metadata) for m in scan.metadata()}
+            else:
+                self.topics()
+                assert self._metadata is not None
         return self._metadata
 
     # -- messages ------------------------------------------------------------------------
@@ -151,21 +146,33 @@ class McapLogSource:
         if wanted is not None and not wanted:
             return
         decoders: dict[int, Any] = {}
-        with self.path.open("rb") as f:
-            if self._indexed:
-                reader = SeekingReader(f)
-                try:
-                    stream = reader.iter_messages(
-                        topics=None if wanted is None else list(wanted), log_time_order=True
-                    )
-                    for schema, channel, message in stream:
-                        yield self._decode(schema, channel, message, decoders)
-                except McapError as exc:
-                    raise LogError(f"{self.name}: damaged MCAP data ({exc})") from None
-            else:
-                for schema, channel, message in self._stream_messages(f, warn=True):
-                    if wanted is None or channel.topic in wanted:
-                        yield self._decode(schema, channel, message, decoders)
+        n_read = 0
+        with McapScan(self.path) as scan:
+            stream = scan.indexed_messages(wanted) if self._indexed else scan.stream_messages()
+            for schema, channel, message in stream:
+                if wanted is None or channel.topic in wanted:
+                    n_read += 1
+                    yield self._decode(schema, channel, message, decoders)
+            if self._indexed and not scan.damages and not self._data_crc_checked:
+                scan.check_data_crc()  # once per file: it reads the whole data section
+                self._data_crc_checked = True
+            self._note_damage(scan, messages_read=n_read if wanted is None else None, log_it=True)
+
+    def _note_damage(self, scan: McapScan, *, messages_read: int | None, log_it: bool) -> None:
+        """Warnings for what `scan` found damaged (logged now when `log_it`: those found at
+        opening are logged by whoever reports the source's warnings); LogError when the
+        damage left no message (`messages_read` 0; None for a selection of topics)."""
+        texts = [d.text(self.name) for d in scan.damages]
+        if texts and messages_read == 0:
+            more = f"; and {len(texts) - 1} more damaged stretches" if len(texts) > 1 else ""
+            raise LogError(f"{texts[0]}{more}: no usable message left in the file")
+        if not self._indexed:
+            texts.insert(0, f"{self.name}: {self._summary_problem}; read front to back")
+        for text in texts:
+            if text not in self.warnings:
+                self.warnings.append(text)
+                if log_it:
+                    log.warning(text)
 
     def _decode(
         self, schema: Schema | None, channel: Channel, message: Message, decoders: dict[int, Any]
@@ -197,44 +204,3 @@ class McapLogSource:
                 f"{message.log_time} cannot be decoded ({exc})"
             ) from None
         return RawMessage(channel.topic, schema.name if schema else "", message.log_time, msg)
-
-    def _stream_messages(
-        self, f: BinaryIO, *, warn: bool
-    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
-        """(schema, channel, message) front to back, for files with no usable summary."""
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
-        for rec in self._stream_records(f, warn=warn):
-            if isinstance(rec, Schema):
-                schemas[rec.id] = rec
-            elif isinstance(rec, Channel):
-                channels[rec.id] = rec
-            elif isinstance(rec, Message) and rec.channel_id in channels:
-                channel = channels[rec.channel_id]
-                yield schemas.get(channel.schema_id), channel, rec
-
-    def _stream_records(self, f: BinaryIO, *, warn: bool) -> Iterator[Any]:
-        """Records front to back; stops at the first damaged one with a warning."""
-        good_bytes = len(MCAP_MAGIC)
-        n_messages = 0
-        try:
-            for rec in StreamReader(f, skip_magic=False, validate_crcs=True).records:
-                if isinstance(rec, Message):
-                    n_messages += 1
-                    good_bytes = f.tell()
-                yield rec
-        except (McapError, EOFError, ValueError, OSError) as exc:
-            lost = self._size - good_bytes
-            text = (
-                f"{self.name}: truncated or damaged MCAP ({type(exc).__name__}); read "
-                f"{n_messages} messages from the first {good_bytes} of {self._size} "
-                f"bytes, lost the last {lost} bytes ({100.0 * lost / self._size:.1f}%)"
-            )
-            if warn and text not in self.warnings:
-                self.warnings.append(text)
-                log.warning(text)
-            return
-        if warn and "no summary" not in " ".join(self.warnings):
-            text = f"{self.name}: no summary section (not closed cleanly); read front to back"
-            self.warnings.append(text)
-            log.warning(text)

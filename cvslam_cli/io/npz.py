@@ -82,7 +82,10 @@ def load_versioned_npz(
                     f"{version}; run `{redo}` again"
                 )
             return {k: npz[k] for k in (npz.files if members is None else members)}
+    except CvslamError:
+        raise
     except FileNotFoundError:
         raise CvslamError(f"{path}: {kind} file not found") from None
-    except (OSError, ValueError, KeyError) as exc:
-        raise CvslamError(f"{path}: not a readable {kind} file ({exc})") from None
+    except Exception as exc:  # numpy, zipfile and zlib raise many kinds for a damaged file
+        why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        raise CvslamError(f"{path}: not a readable {kind} file ({why})") from None

@@ -19,6 +19,7 @@ the features). Writes go through `io/atomic.py`.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -227,6 +228,15 @@ class RunLayout:
             raise CvslamError(f"{fdir}: no feature files (<vehicle>.npz); {remedy}")
         return files
 
+    def relative_inputs(self, records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+        """Input records (`path`, size, checksum) with each path relative to the run, as
+        the files written into the run record them: the same run gives the same bytes
+        wherever it is, and a moved run (with its logs) still finds them."""
+        root = self.root.resolve()
+        return [
+            {**r, "path": os.path.relpath((self.root / r["path"]).resolve(), root)} for r in records
+        ]
+
     def find_logs(self, metas: Sequence[dict[str, Any]]) -> list[Path]:
         """The logs the features were made from: the feature files' recorded inputs (their
         `metas`, from extract), else the logs beside `features/` (a simulator output
@@ -234,7 +244,7 @@ class RunLayout:
         paths: list[Path] = []
         for meta in metas:
             for rec in meta.get("inputs", []):
-                p = Path(rec["path"])
+                p = self.root / rec["path"]  # relative to the run (absolute in older files)
                 if p not in paths:
                     paths.append(p)
         if not paths:

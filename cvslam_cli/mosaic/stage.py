@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ from cvslam_cli.config import Config, MosaicConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.geometry.camera import CameraModel
 from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
-from cvslam_cli.io.atomic import atomic_dir
+from cvslam_cli.io.atomic import atomic_dir, check_writable
 from cvslam_cli.io.features_file import feature_frame_index
 from cvslam_cli.io.fuse_files import read_map_csv
 from cvslam_cli.io.logs import (
@@ -42,6 +43,7 @@ from cvslam_cli.io.logs import (
     all_log_paths,
     ground_truth_tables,
     open_logs,
+    require_logs,
     with_run_bindings,
 )
 from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
@@ -204,8 +206,10 @@ def _with_overrides(cfg: Config, source: str | None, gsd_m: float | None) -> Con
     if source is not None:
         m = dataclasses.replace(m, source=source)  # type: ignore[arg-type]
     if gsd_m is not None:
-        if not gsd_m > 0:
-            raise CvslamError(f"--gsd: expected metres per pixel > 0, got {gsd_m}")
+        if not (math.isfinite(gsd_m) and gsd_m > 0):
+            raise CvslamError(
+                f"--gsd: expected a finite number of metres per pixel > 0, got {gsd_m}"
+            )
         m = dataclasses.replace(m, gsd_m=gsd_m)
     return dataclasses.replace(cfg, mosaic=m)
 
@@ -503,6 +507,7 @@ def run(
     vehicles = sorted(frame_stamps_ns)
     cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
     logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
+    require_logs(logs_used)  # a missing log named before the plan reads it
     fuse = layout.fuse(mc.fuse_dir)
     traj_files = _fuse_inputs(fuse, vehicles, mc.source)
     out = layout.mosaic(mosaic_name(mc.source))
@@ -512,6 +517,7 @@ def run(
     if plan.action == "skip":
         log.info("mosaic: %s is up to date (same config and inputs); --force to redo it", out.path)
         return MosaicSummary(run_dir, out.path, True, mc.source)
+    check_writable(outputs)  # before the work: a read-only folder, a name too long
     t_start = time.perf_counter()
 
     table = read_map_csv(fuse.map_csv)

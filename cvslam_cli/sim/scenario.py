@@ -8,6 +8,7 @@ sensor sub-sections are the simulator's own parameter dataclasses (`TerrainSpec`
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -126,7 +127,7 @@ class Scenario:
     name: str = "scenario"
     mode: Literal["images", "landmarks"] = "images"
     duration_s: float = opt(60.0, lo=0.0, lo_open=True)
-    seed: int = 0
+    seed: int = opt(0, lo=0)
     world: Literal["terrain", "yard"] = "terrain"
     terrain: TerrainSpec = opt(TerrainSpec())
     yard: YardSpec = opt(YardSpec())
@@ -163,6 +164,8 @@ def load_scenario(
         raw = deep_merge(raw, patch)
     scenario: Scenario = build_dataclass(Scenario, raw, "", str(path))
     if seed is not None:
+        if seed < 0:
+            raise ConfigError(f"--seed: expected an integer >= 0, got {seed}")
         scenario = replace(scenario, seed=seed)
     if duration_s is not None:
         scenario = stretch(scenario, duration_s)
@@ -174,8 +177,10 @@ def stretch(sc: Scenario, duration_s: float) -> Scenario:
     """The same mission over `duration_s`: every vehicle flies the same path, with speeds and
     start times scaled by the ratio of durations (sensor rates unchanged), so events such as
     loop closures and cross-vehicle overlaps keep their order and relative timing."""
-    if duration_s <= 0:
-        raise ConfigError(f"--duration: expected a positive number of seconds, got {duration_s:g}")
+    if not (math.isfinite(duration_s) and duration_s > 0):
+        raise ConfigError(
+            f"--duration: expected a finite, positive number of seconds, got {duration_s:g}"
+        )
     k = sc.duration_s / duration_s
     vehicles = {
         name: replace(v, speed_m_s=v.speed_m_s * k, start_s=v.start_s / k)

@@ -36,7 +36,7 @@ from cvslam_cli.errors import ConfigError, CvslamError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig, rig_calibration
 from cvslam_cli.geometry.projection import pixel_rays
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw
-from cvslam_cli.io.atomic import atomic_dir, write_text_atomic
+from cvslam_cli.io.atomic import atomic_dir, check_writable, write_text_atomic
 from cvslam_cli.io.features_file import save_features
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
@@ -382,7 +382,13 @@ def _write_vehicle(
     if images_mode:
         jobs = [(v.index, k, s.T_left[k], s.T_right[k]) for k in range(len(s.t_cam))]
         state = {**render_state, "rig": rig, "rays": (pixel_rays(rig.left), pixel_rays(rig.right))}
-        rendered = ordered_map(_render_pair, jobs, workers=workers, state=state)
+        rendered = ordered_map(
+            _render_pair,
+            jobs,
+            workers=workers,
+            state=state,
+            describe=lambda job: f"rendering {vehicle} frame {job[1]}",
+        )
     builder = FeatureSetBuilder(vehicle, rig_calibration(rig))
     lm_rng = _rng(sc.seed, v.index, _LANDMARKS)
 
@@ -537,6 +543,7 @@ def run(
     t_start = time.perf_counter()
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
         raise CvslamError(f"{out_dir}: already exists and is not empty (use --force to replace it)")
+    check_writable([out_dir])  # before the work: a read-only folder, -o under a file
     world = build_world(sc)
     vehicles = _vehicles(sc, world, source)
     landmarks = _landmark_world(sc, world) if sc.mode == "landmarks" else None

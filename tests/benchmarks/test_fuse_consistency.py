@@ -168,7 +168,7 @@ def monte_carlo(
         path = Path(tmp) / "scenario.yaml"
         path.write_text(yaml.safe_dump(scenario(outlier_fraction)))
         state = {"scenario": str(path), "overrides": tuple(overrides), "filters": filters}
-        return list(ordered_map(one_run, list(seeds), workers=workers, state=state, chunksize=1))
+        return list(ordered_map(one_run, list(seeds), workers=workers, state=state))
 
 
 # ----------------------------------------------------------------------------- statistics

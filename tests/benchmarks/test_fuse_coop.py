@@ -678,7 +678,7 @@ def teams(sim_cache: tuple[Path, bool], cfg: Config) -> dict[int, Team]:
     # the 4-UAV runs first: the longest jobs first keep both workers busy to the end
     jobs = [(SCENARIOS[nv], s) for nv in (4, 2) for s in SEEDS]
     state = {"sim_cache": str(cache), "keep": keep, "bounds": BOUNDS}
-    results = list(ordered_map(one_run, jobs, workers=WORKERS, state=state, chunksize=1))
+    results = list(ordered_map(one_run, jobs, workers=WORKERS, state=state))
     wall = time.perf_counter() - t0
     out = {
         nv: make_team(name, [r for r in results if r.scenario == name])

@@ -207,3 +207,32 @@ def test_peak_memory_flat_with_log_length_per_storage(logs_dir: Path, kind: str)
     )
     assert n_long > 9 * n_short
     assert rss_long / rss_short < 1.15
+
+
+def test_chunk_crc_cost(tmp_path, monkeypatch):
+    """What checking every chunk against its CRC (issue 16) costs: `LogSet.records()` with
+    the check against the same reader with it switched off, interleaved, same run."""
+    import cvslam_cli.io.mcap_scan as scan
+
+    path = write_log(tmp_path / "a.mcap", 120)
+    checked = scan.get_chunk_data_stream
+
+    def unchecked(chunk, validate_crc=False):
+        return checked(chunk, validate_crc=False)
+
+    def rate():
+        t0, n = time.perf_counter(), 0
+        for rec in LogSet([McapLogSource(path)], load_config().logs).records():
+            n += 2 if isinstance(rec, StereoFrame) else 0
+        return n / (time.perf_counter() - t0)
+
+    rates: dict[str, list[float]] = {"crc": [], "off": []}
+    for _ in range(3):
+        monkeypatch.setattr(scan, "get_chunk_data_stream", checked)
+        rates["crc"].append(rate())
+        monkeypatch.setattr(scan, "get_chunk_data_stream", unchecked)
+        rates["off"].append(rate())
+    crc, off = sorted(rates["crc"])[1], sorted(rates["off"])[1]
+    print(f"\n[bench] chunk CRC: checked {crc:.0f} images/s | off {off:.0f} images/s | "
+          f"ratio {crc / off:.2f}")  # fmt: skip
+    assert crc / off > 0.6  # target: the check costs well under half the reading

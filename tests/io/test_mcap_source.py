@@ -186,7 +186,7 @@ def test_truncated_mid_chunk_reads_prefix_with_warning(tmp_path):
     for f, (stamp, img) in zip(frames, synth.left, strict=False):
         assert f.stamp_ns == stamp
         np.testing.assert_array_equal(f.left.image, img)
-    assert any("truncated" in w and "lost the last" in w for w in src.warnings)
+    assert any("truncated" in w and "lost the messages logged" in w for w in src.warnings)
     assert any("truncated" in p.text for p in logs.problems)
 
 
@@ -235,3 +235,121 @@ def test_ros1_bag_converted_with_rosbags_reads(tmp_path):
     imu = list(logs.records())
     assert [s.stamp_ns for s in imu] == [10**9 + i * 5_000_000 for i in range(20)]
     assert imu[7].gyro_rad_s[0] == pytest.approx(0.07)
+
+
+# -- damage: CRCs checked, reading on past it, losses named -----------------------------------
+
+
+def _chunked_log(tmp_path):
+    """A small log of several chunks and the byte offsets of its chunk records."""
+    from mcap.reader import SeekingReader
+
+    synth = write_stereo_log(tmp_path / "full.mcap", n_frames=8, chunk_size=8 * 1024)
+    with synth.path.open("rb") as f:
+        summary = SeekingReader(f).get_summary()
+    chunks = sorted((ci.chunk_start_offset, ci.chunk_length) for ci in summary.chunk_indexes)
+    return synth, bytearray(synth.path.read_bytes()), chunks
+
+
+def _read(path):
+    src = McapLogSource(path)
+    logs = LogSet([src], load_config().logs, strict=False)
+    recs = list(logs.records())
+    return recs, src.warnings
+
+
+def _frame_stamps(recs):
+    return [r.stamp_ns for r in recs if isinstance(r, StereoFrame)]
+
+
+def test_flipped_payload_bit_is_caught_by_the_chunk_crc_and_reading_goes_on(tmp_path):
+    synth, data, chunks = _chunked_log(tmp_path)
+    start, length = chunks[3]
+    data[start + length // 2] ^= 0x10  # inside the compressed payload of chunk 3
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    recs, warnings = _read(bad)
+    ref_recs, _ = _read(synth.path)
+    (w,) = [w for w in warnings if "damaged MCAP" in w]
+    assert f"bytes {start}-{start + length}" in w and "lost" in w and "/uav1/imu" in w
+    # every record read is one of the original's, and those after the damage are there
+    ref_frames = {r.stamp_ns: r for r in ref_recs if isinstance(r, StereoFrame)}
+    stamps = _frame_stamps(recs)
+    assert 0 < len(stamps) < len(ref_frames) and stamps[-1] == max(ref_frames)
+    for r in recs:
+        if isinstance(r, StereoFrame):
+            np.testing.assert_array_equal(r.left.image, ref_frames[r.stamp_ns].left.image)
+
+
+def test_truncated_log_with_a_damaged_chunk_reads_on_to_the_next_chunk(tmp_path):
+    synth, data, chunks = _chunked_log(tmp_path)
+    start, _ = chunks[2]
+    data[start + 30 : start + 60] = bytes(30)  # the chunk's header and payload start
+    cut = bytes(data[: chunks[-1][0] + 5])  # no summary: read front to back
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(cut)
+    recs, warnings = _read(bad)
+    assert any("no footer" in w for w in warnings)
+    damaged = [w for w in warnings if "damaged MCAP" in w]
+    assert len(damaged) == 2 and f"at bytes {start}-" in damaged[0]
+    assert "lost 15 messages" in damaged[0] and "file truncated" in damaged[1]
+    ref = _frame_stamps(_read(synth.path)[0])
+    stamps = _frame_stamps(recs)
+    assert set(stamps) < set(ref) and any(s > ref[3] for s in stamps)
+
+
+def test_log_damaged_before_any_message_is_an_error_naming_the_damage(tmp_path):
+    _, data, chunks = _chunked_log(tmp_path)
+    for cut_at in (chunks[0][0] + 4, chunks[0][0] + chunks[0][1] // 2, 20):
+        bad = tmp_path / f"cut{cut_at}.mcap"
+        bad.write_bytes(bytes(data[:cut_at]))
+        with pytest.raises(LogError, match=rf"{bad}: damaged MCAP.*no usable message"):
+            _read(bad)
+
+
+def test_damaged_summary_or_index_is_named_and_costs_no_message(tmp_path):
+    synth, data, chunks = _chunked_log(tmp_path)
+    ref, _ = _read(synth.path)
+    summary = bytearray(data)
+    summary[-200] ^= 0x01  # a chunk index in the summary
+    index = bytearray(data)
+    start, length = chunks[1]
+    index[start + length + 30] ^= 0x01  # the message index records after chunk 1
+    for variant, expected in ((summary, "summary section damaged"), (index, "message index")):
+        bad = tmp_path / "bad.mcap"
+        bad.write_bytes(bytes(variant))
+        recs, warnings = _read(bad)
+        assert any(expected in w for w in warnings), warnings
+        assert _frame_stamps(recs) == _frame_stamps(ref)
+
+
+def test_damage_outside_the_chunks_contents_is_named(tmp_path):
+    """Flips the chunk CRCs cannot see are warnings too: a chunk header's time field (it
+    disagrees with the chunk's content and index) and, where the writer stored the data
+    section CRC, the file's Header record; every message read is intact."""
+    from mcap.reader import SeekingReader
+    from mcap_ros2.writer import Writer
+
+    path = tmp_path / "a.mcap"
+    with path.open("wb") as f:
+        w = Writer(f, chunk_size=2048)
+        w._writer._Writer__enable_data_crcs = True  # the library's option, off by default
+        schema = w.register_msgdef("std_msgs/msg/String", "string data")
+        for i in range(200):
+            w.write_message("/t", schema, {"data": f"m{i:04d}"}, log_time=i, publish_time=i)
+        w.finish()
+    with path.open("rb") as f:
+        reader = SeekingReader(f)
+        chunks = sorted(c.chunk_start_offset for c in reader.get_summary().chunk_indexes)
+        library = reader.get_header().library
+    data = path.read_bytes()
+    at_library = data.index(library.encode())
+    for flip, expected in (
+        (chunks[1] + 9 + 1, "the chunk disagrees with its header's time span"),
+        (at_library, "data section CRC mismatch outside the message payloads"),
+    ):
+        bad = tmp_path / "bad.mcap"
+        bad.write_bytes(data[:flip] + bytes([data[flip] ^ 0x01]) + data[flip + 1 :])
+        src = McapLogSource(bad)
+        assert [m.msg.data for m in src.messages()] == [f"m{i:04d}" for i in range(200)]
+        assert any(expected in w for w in src.warnings), src.warnings
