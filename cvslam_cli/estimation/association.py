@@ -51,8 +51,9 @@ TYPE_1, TYPE_2, TYPE_3 = 1, 2, 3
 @dataclass(frozen=True, eq=False)
 class LandmarkPrediction:
     """k landmarks predicted into a stereo frame: `slots` (k,), `z` (k, 4) predicted pixels
-    (u_l, v_l, u_r, v_r), `H_v` (k, 4, n_v) w.r.t. the vehicle block, `H_m` (k, 4, 3)
-    w.r.t. the landmark's d columns in the state, `S` (k, 4, 4) innovation covariances."""
+    (u_l, v_l, u_r, v_r), `H_v` (k, 4, n_v) w.r.t. the vehicle block, `H_m` (k, 4, d)
+    w.r.t. the landmark's d columns in the state (`JointState.landmark_columns`), `S` (k, 4, 4)
+    innovation covariances."""
 
     slots: I64
     z: F64
@@ -103,7 +104,7 @@ def predict_landmarks(
     if M is not None:
         H_m = H_m @ M
     H_v = H_pose @ J_pose
-    HvPvm = H_v @ P_vm  # (k, 4, 3)
+    HvPvm = H_v @ P_vm  # (k, 4, d)
     cross = HvPvm @ np.swapaxes(H_m, 1, 2)
     S = (
         H_v @ P_vv @ np.swapaxes(H_v, 1, 2)
@@ -296,7 +297,7 @@ def in_view_rows(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> I64:
 
 def view_directions(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> F64:
     """(k, 3) unit vectors from landmarks m (k, 3) to vin's left camera centre at (p, Psi)."""
-    centre, _ = vin.obs.left_camera(p, euler)
+    centre = vin.obs.left_camera_centre(p, euler)
     d = centre - np.atleast_2d(m_nav_m)
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 

@@ -135,8 +135,8 @@ class NewLandmarks:
             key, since_ns = self._anchors.get(run.index, (None, frame.stamp_ns))
             if frame.stamp_ns - since_ns > self.settings.anchor_span_ns:
                 key, since_ns = None, frame.stamp_ns
-            slots, key = _anchored(self.state, vin, pose, p_cam, cov_cam, key)
-            self._anchors[run.index] = (key, since_ns)
+            slots, new_key = _anchored(self.state, vin, pose, p_cam, cov_cam, key)
+            self._anchors[run.index] = (new_key, since_ns if new_key == key else frame.stamp_ns)
         else:
             slots = _cartesian(self.state, vin, pose, p_cam, cov_cam)
         self.book.add(

@@ -79,11 +79,11 @@ class StereoObservationModel:
             H_pose[:, 2 * c : 2 * c + 2, 3:] = J @ (R @ dq)
         return z, H_pose, H_m
 
-    def left_camera(self, p_nav_m: F64, euler_rad: F64) -> tuple[F64, F64]:
-        """The left camera at pose (p, Psi): its centre (3,) in nav and C_nav_cam (3, 3)."""
-        C = euler_zyx_to_matrix(*euler_rad)
-        centre = np.asarray(p_nav_m, dtype=float) + C @ self.t_body_cam[0]
-        return centre, C @ self.R_cam_body[0].T
+    def left_camera_centre(self, p_nav_m: F64, euler_rad: F64) -> F64:
+        """(3,) the left camera's centre in nav at pose (p, Psi)."""
+        return (
+            np.asarray(p_nav_m, dtype=float) + euler_zyx_to_matrix(*euler_rad) @ self.t_body_cam[0]
+        )
 
     def landmark_jacobians(
         self, p_nav_m: F64, euler_rad: F64, p_cam_m: F64
