@@ -127,6 +127,14 @@ def bound_logs(logs: Sequence[Path], cfg: Config) -> tuple[list[Path], Config]:
     return paths, dataclasses.replace(cfg, logs=bind_logs(cfg.logs, bound))
 
 
+def run_session(run_dir: Path, command: str, *, create: bool = False) -> Any:
+    """The run directory held by this process while `command` works on it: one process at a
+    time, the log copied to RUN_DIR/cvslam.log (`io/rundir.py`)."""
+    from cvslam_cli.io.rundir import RunDir
+
+    return RunDir(run_dir).session(command, create=create)
+
+
 def write_resolved_config(cfg: Config, path: Path) -> Path:
     """Write the resolved config to `path` (a name from `io/run_layout.py`)."""
     write_text_atomic(path, dump_config(cfg))
@@ -409,16 +417,17 @@ def do_extract(
 ) -> None:
     from cvslam_cli.features.stage import run
 
-    summary = run(
-        cfg,
-        list(logs),
-        run_dir,
-        workers=workers,
-        force=force,
-        progress=log.isEnabledFor(logging.INFO),
-    )
-    layout = RunLayout(run_dir)
-    write_resolved_config(cfg, layout.extract_config)
+    with run_session(run_dir, "extract", create=True):
+        summary = run(
+            cfg,
+            list(logs),
+            run_dir,
+            workers=workers,
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
+        layout = RunLayout(run_dir)
+        write_resolved_config(cfg, layout.extract_config)
     for name, v in summary.vehicles.items():
         log.info(
             "%s: %d stereo frames (%d empty, %d/%d images unpaired), %.0f keypoints and "
@@ -486,18 +495,19 @@ def do_fuse(
 ) -> None:
     from cvslam_cli.estimation.stage import run
 
-    summary = run(
-        cfg,
-        run_dir,
-        filter_kind=filter_kind,
-        single=single,
-        log_paths=list(log_paths),
-        force=force,
-        progress=log.isEnabledFor(logging.INFO),
-    )
-    if summary.skipped:
-        return
-    write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
+    with run_session(run_dir, "fuse"):
+        summary = run(
+            cfg,
+            run_dir,
+            filter_kind=filter_kind,
+            single=single,
+            log_paths=list(log_paths),
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
+        if summary.skipped:
+            return
+        write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
     for name, v in summary.vehicles.items():
         errors = (
             f"final position error {v.final_error_m:.2f} m (dead reckoning "
@@ -580,15 +590,16 @@ def do_mosaic(
 ) -> None:
     from cvslam_cli.mosaic.stage import run
 
-    summary = run(
-        cfg,
-        run_dir,
-        source=source,
-        gsd_m=gsd_m,
-        log_paths=list(log_paths),
-        force=force,
-        progress=log.isEnabledFor(logging.INFO),
-    )
+    with run_session(run_dir, "mosaic"):
+        summary = run(
+            cfg,
+            run_dir,
+            source=source,
+            gsd_m=gsd_m,
+            log_paths=list(log_paths),
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
     if summary.skipped:
         return
     for name, m in summary.mosaics.items():
@@ -668,8 +679,10 @@ def do_eval(
 ) -> None:
     from cvslam_cli.evaluation.stage import headline_text, run
 
-    summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
-    click.echo(headline_text(summary.headline))
+    with run_session(run_dir, "eval"):
+        summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+    # labelled, so that tables of runs made in parallel (make -j) say which run they are of
+    click.echo(f"{run_dir}:\n{headline_text(summary.headline)}")
     log.info("report: %s", EvalFolder(summary.out_dir).report_html)
 
 
@@ -699,7 +712,20 @@ def run_cmd(
     unchanged are skipped. NAME=LOG: the log of vehicle NAME.
     """
     paths, cfg = bound_logs(logs, cfg)
-    do_extract(cfg, paths, run_dir, workers=workers, force=force)
+    with run_session(run_dir, "run", create=True):
+        do_run(cfg, paths, run_dir, gt=gt, workers=workers, force=force)
+
+
+def do_run(
+    cfg: Config,
+    logs: Sequence[Path],
+    run_dir: Path,
+    *,
+    gt: Sequence[str],
+    workers: int,
+    force: bool,
+) -> None:
+    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
     do_fuse(cfg, run_dir, filter_kind="hinf", single=False, log_paths=(), force=force)
     for comparison in cfg.run.comparisons:
         filter_kind = "ekf" if comparison.startswith("ekf") else "hinf"

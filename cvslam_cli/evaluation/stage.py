@@ -494,8 +494,7 @@ def _provenance(
 ) -> dict[str, str]:
     """Where the report's data came from: the truth's files, the stages that made the
     estimates and mosaics."""
-    layout = RunLayout(rd.path)
-    inputs = layout.relative_inputs([input_record(p) for p in truth_files])
+    inputs = [input_record(p, rd.path) for p in truth_files]  # relative to the run
     provenance = {  # paths relative to the run: the report is the same wherever the run is
         "ground truth": truth_source,
         "cvslam version": __version__,
@@ -584,7 +583,7 @@ def run(
     out = layout.eval
     outputs = [out.metrics_json, out.metrics_csv, out.headline_csv, out.report_html]
     inputs = [*truth_files, *est_files, *layout.mosaic().pngs()]
-    plan = rd.plan(EVAL, cfg, ("eval",), inputs, outputs, force)
+    plan = rd.plan(EVAL, cfg, ("eval", "run.dataset"), inputs, outputs, force)
     if plan.action == "skip":
         log.info("eval: %s is up to date (same config and inputs); --force to redo it", out.path)
         old = pd.read_csv(out.headline_csv, index_col=0)
@@ -592,6 +591,9 @@ def run(
     check_writable(outputs)  # before the work: a read-only folder, a name too long
     estimates = [e for e in _estimates(runs, vehicles) if e.vehicle in truth]
     rows, nees_of = _all_metrics(estimates, truth, truth_source, cfg.eval)
+    # which run and dataset each row is of, for tables across runs (`cvslam summary`)
+    dataset = cfg.run.dataset or run_dir.resolve().name
+    rows = [{"dataset": dataset, "run_dir": run_dir.resolve().name, **r} for r in rows]
     metrics = pd.DataFrame(rows)
     headline = _headline(metrics)
 
