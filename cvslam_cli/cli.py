@@ -20,6 +20,7 @@ from typing import Any
 import click
 
 from cvslam_cli import __version__
+from cvslam_cli.batch.commands import COMMANDS as BATCH_COMMANDS
 from cvslam_cli.config import Config, dump_config, load_config
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_text_atomic
@@ -34,11 +35,17 @@ class _OneLineFormatter(logging.Formatter):
         return f"cvslam: {prefix}{record.getMessage()}"
 
 
+class _TerminalHandler(logging.StreamHandler):
+    """The handler writing the one-line messages to stderr."""
+
+
 def _setup_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _TerminalHandler(sys.stderr)
     handler.setFormatter(_OneLineFormatter())
-    log.handlers[:] = [handler]
+    # replace the terminal handler of an earlier call, keep others (a run's log file)
+    log.handlers[:] = [h for h in log.handlers if not isinstance(h, _TerminalHandler)]
+    log.addHandler(handler)
     log.setLevel(level)
     log.propagate = False
 
@@ -399,9 +406,23 @@ def simulate(
     show_default=True,
     help="Processes working on frames in parallel.",
 )
+@click.option(
+    "--scheduler",
+    metavar="ADDRESS",
+    default=None,
+    help="Spread the frames over the Dask cluster at ADDRESS (tcp://host:8786) instead of "
+    "--workers local processes; same output (docs/batch.md).",
+)
 @_FORCE_STAGE
 @config_options
-def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cfg: Config) -> None:
+def extract(
+    logs: tuple[Path, ...],
+    run_dir: Path,
+    workers: int,
+    scheduler: str | None,
+    force: bool,
+    cfg: Config,
+) -> None:
     """Adaptive SIFT + stereo-constrained matching on every stereo frame of LOG...
     (NAME=LOG: the log of vehicle NAME).
 
@@ -409,11 +430,17 @@ def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cf
     <vehicle>_stats.csv, and records the stage in RUN_DIR/run.yaml.
     """
     paths, cfg = bound_logs(logs, cfg)
-    do_extract(cfg, paths, run_dir, workers=workers, force=force)
+    do_extract(cfg, paths, run_dir, workers=workers, force=force, scheduler=scheduler)
 
 
 def do_extract(
-    cfg: Config, logs: Sequence[Path], run_dir: Path, *, workers: int, force: bool
+    cfg: Config,
+    logs: Sequence[Path],
+    run_dir: Path,
+    *,
+    workers: int,
+    force: bool,
+    scheduler: str | None = None,
 ) -> None:
     from cvslam_cli.features.stage import run
 
@@ -425,6 +452,7 @@ def do_extract(
             workers=workers,
             force=force,
             progress=log.isEnabledFor(logging.INFO),
+            scheduler=scheduler,
         )
         layout = RunLayout(run_dir)
         write_resolved_config(cfg, layout.extract_config)
@@ -741,6 +769,12 @@ def do_run(
         log.warning(
             "eval skipped: the logs have no ground truth (give it with --gt FILE to evaluate)"
         )
+
+
+# ----------------------------------------------------------------------------- many runs
+
+for _command in BATCH_COMMANDS:  # batch, summary, sweep (cvslam_cli/batch/commands.py)
+    cli.add_command(_command)
 
 
 # ----------------------------------------------------------------------------- entry

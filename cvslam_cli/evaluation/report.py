@@ -55,7 +55,11 @@ class FigureEntry:
 
 
 def _img_tag(path: Path, alt: str) -> str:
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return _png_tag(path.read_bytes(), alt)
+
+
+def _png_tag(png: bytes, alt: str) -> str:
+    data = base64.b64encode(png).decode("ascii")
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
@@ -120,6 +124,41 @@ def render_report(
             for k, v in provenance.items()
         ),
         "</tbody></table>",
+        "</body></html>",
+    ]
+    return "\n".join(parts)
+
+
+def render_summary(
+    *,
+    title: str,
+    subtitle: str,
+    table: pd.DataFrame,
+    figure_png: bytes,
+    figure_caption: str,
+    reports: Mapping[str, str],
+) -> str:
+    """The page comparing runs (`cvslam summary`), self-contained like the report: the
+    table, one figure, and a link to each run's report (`reports`: run -> relative URL)."""
+    links = "".join(
+        f'<li><a href="{html.escape(url)}">{html.escape(run)}</a></li>'
+        for run, url in reports.items()
+    )
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title>",
+        f"<style>{_CSS}</style>",
+        f"<script>{_SCRIPT}</script>",
+        "</head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        f'<p class="sub">{html.escape(subtitle)}</p>',
+        "<h2>Runs</h2>",
+        _table(table),
+        f"<figure>{_png_tag(figure_png, title)}"
+        f"<figcaption>{html.escape(figure_caption)}</figcaption></figure>",
+        "<h2>Reports</h2>",
+        f"<ul>{links}</ul>",
         "</body></html>",
     ]
     return "\n".join(parts)

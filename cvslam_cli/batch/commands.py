@@ -1,0 +1,200 @@
+"""The commands over many runs: `cvslam batch`, `cvslam summary`, `cvslam sweep` (thin click
+commands over `runner.py`, `summary.py`, `sweep.py`; registered in `cli.py`)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+
+from cvslam_cli.batch.execute import RecipeResult
+from cvslam_cli.batch.recipe import Recipe, load_recipe
+from cvslam_cli.batch.runner import plan_batch, run_batch
+from cvslam_cli.batch.sweep import sweep_recipes
+from cvslam_cli.errors import CvslamError
+
+log = logging.getLogger("cvslam")
+
+_RECIPES = click.argument(
+    "recipes", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path)
+)
+
+
+def _cluster_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Where the runs go: `--scheduler ADDRESS`, `--local-workers N` or `--serial`; where
+    their files go: `--runs DIR`, `--generated DIR`; `--stage-workers N`."""
+    for option in reversed(
+        [
+            click.option(
+                "--scheduler",
+                metavar="ADDRESS",
+                default=None,
+                help="Run on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786; "
+                "docs/batch.md).",
+            ),
+            click.option(
+                "--local-workers",
+                type=click.IntRange(min=1),
+                default=None,
+                metavar="N",
+                help="Run on a local Dask cluster of N worker processes (default: one per core).",
+            ),
+            click.option(
+                "--serial",
+                is_flag=True,
+                help="Run the recipes one after another in this process (no Dask).",
+            ),
+            click.option(
+                "--runs",
+                "runs_dir",
+                default=Path("runs"),
+                show_default=True,
+                type=click.Path(file_okay=False, path_type=Path),
+                help="Run directories go in DIR/<recipe name>.",
+            ),
+            click.option(
+                "--generated",
+                "generated_dir",
+                default=Path("datasets/generated"),
+                show_default=True,
+                type=click.Path(file_okay=False, path_type=Path),
+                help="Imported and simulated logs go in DIR/<recipe name>/ (not in git).",
+            ),
+            click.option(
+                "--stage-workers",
+                type=click.IntRange(min=1),
+                default=1,
+                show_default=True,
+                help="Processes per stage of one recipe (extract, simulate); with Dask the "
+                "parallelism is across recipes.",
+            ),
+        ]
+    ):
+        func = option(func)
+    return func
+
+
+def _check_cluster_choice(scheduler: str | None, local_workers: int | None, serial: bool) -> None:
+    if sum((scheduler is not None, local_workers is not None, serial)) > 1:
+        raise click.UsageError("give at most one of --scheduler, --local-workers, --serial")
+
+
+def _report(result: RecipeResult, done: int, total: int) -> None:
+    if result.ok:
+        log.info("[%d/%d] %s: done in %.1f s (%s)", done, total, result.name, result.wall_s,
+                 result.run_dir)  # fmt: skip
+    else:
+        log.error("[%d/%d] %s failed: %s", done, total, result.name, result.error)
+
+
+def _run_all(recipes: Sequence[Recipe], opts: dict[str, Any]) -> list[RecipeResult]:
+    """Run the recipes with the cluster options."""
+    _check_cluster_choice(opts["scheduler"], opts["local_workers"], opts["serial"])
+    steps = plan_batch(
+        recipes, opts["runs_dir"], opts["generated_dir"], workers=opts["stage_workers"]
+    )
+    results = run_batch(
+        steps,
+        serial=opts["serial"],
+        scheduler=opts["scheduler"],
+        local_workers=opts["local_workers"],
+        report=_report,
+    )
+    return results
+
+
+def _fail_if_any_failed(results: Sequence[RecipeResult]) -> None:
+    """CvslamError naming the recipes that failed (each was reported as it ended)."""
+    failed = [r for r in results if not r.ok]
+    if failed:
+        raise CvslamError(
+            f"{len(failed)} of {len(results)} recipe(s) failed: "
+            + ", ".join(f"{r.name} (log: {r.run_dir}/cvslam.log)" for r in failed)
+        )
+
+
+@click.command()
+@_RECIPES
+@_cluster_options
+@click.option(
+    "--summary",
+    "summary_out",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Also write the summary of the runs (FILE.csv, FILE.html).",
+)
+def batch(recipes: tuple[Path, ...], summary_out: Path | None, **opts: Any) -> None:
+    """Run every RECIPE (datasets/*.yaml): make its logs, then every stage, on a Dask cluster
+    (default: a local one sized to the machine) or --serial.
+
+    Each recipe's run goes to RUNS/<name>; what is up to date is skipped. A recipe that
+    fails is reported and the others finish; the exit status is 1 if any failed.
+    """
+    results = _run_all([load_recipe(r) for r in recipes], opts)
+    if summary_out is not None:
+        _summary([Path(r.run_dir) for r in results if r.ok], summary_out)
+    _fail_if_any_failed(results)
+
+
+def _summary(run_dirs: Sequence[Path], out: Path) -> None:
+    from cvslam_cli.batch.summary import write_summary  # pandas, matplotlib: only when used
+
+    if not run_dirs:
+        return
+    files = write_summary(run_dirs, out)
+    log.info("summary of %d run(s), %d rows: %s, %s", len(run_dirs), files.rows, files.csv,
+             files.html)  # fmt: skip
+
+
+@click.command()
+@click.argument(
+    "run_dirs", nargs=-1, required=True, type=click.Path(file_okay=False, path_type=Path)
+)
+@click.option(
+    "-o",
+    "--output",
+    default=Path("runs/summary"),
+    show_default=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write OUTPUT.csv and OUTPUT.html.",
+)
+def summary(run_dirs: tuple[Path, ...], output: Path) -> None:
+    """One table across RUN_DIR... (run, dataset, vehicle, estimate, ATE/RPE/drift/NEES,
+    time, real-time factor) as CSV, and an HTML page comparing them with links to each
+    run's report."""
+    _summary(list(run_dirs), output)
+
+
+@click.command()
+@click.argument("recipe", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--grid",
+    "grid",
+    multiple=True,
+    required=True,
+    metavar="KEY.PATH=V1,V2,...",
+    help="One axis of the grid: a config key and its values (repeatable; the grid is the "
+    "product of the axes).",
+)
+@_cluster_options
+@click.option(
+    "-o",
+    "--output",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="The summary (OUTPUT.csv, OUTPUT.html); default RUNS/<recipe>_sweep.",
+)
+def sweep(recipe: Path, grid: tuple[str, ...], output: Path | None, **opts: Any) -> None:
+    """Run RECIPE at every point of the --grid (each point a run directory named by its
+    overrides, RUNS/<recipe>__KEY=V...) and write their summary."""
+    base = load_recipe(recipe)
+    results = _run_all(sweep_recipes(base, grid), opts)
+    out = output or opts["runs_dir"] / f"{base.name}_sweep"
+    _summary([Path(r.run_dir) for r in results if r.ok], out)
+    _fail_if_any_failed(results)
+
+
+COMMANDS = (batch, summary, sweep)
