@@ -65,10 +65,13 @@ class LogSource:
 
 @dataclass(frozen=True)
 class Recipe:
-    """A parsed recipe file; paths already resolved against its folder."""
+    """A parsed recipe file; paths already resolved against its folder. `name`: its run
+    directory's; `dataset`: what it is a run of (both the file's name, except for the
+    points of a sweep)."""
 
     path: Path
     name: str
+    dataset: str
     description: str
     logs: tuple[LogSource, ...]
     config_files: tuple[Path, ...]
@@ -81,6 +84,7 @@ class Recipe:
         return Recipe(
             self.path,
             name,
+            self.dataset,
             self.description,
             self.logs,
             self.config_files,
@@ -169,6 +173,7 @@ def load_recipe(path: Path) -> Recipe:
     return Recipe(
         path=path,
         name=path.stem,
+        dataset=path.stem,
         description=str(raw.get("description", "")).strip(),
         logs=logs,
         config_files=tuple(
@@ -223,7 +228,7 @@ class RecipeSteps:
         argv = ["run", *logs, "-o", str(self.run_dir), "--workers", str(self.workers)]
         for c in self.recipe.config_files:
             argv += ["--config", str(c)]
-        for s in (*self.recipe.overrides, f"run.dataset={json.dumps(self.recipe.name)}"):
+        for s in (*self.recipe.overrides, f"run.dataset={json.dumps(self.recipe.dataset)}"):
             argv += ["--set", s]
         for g in self.recipe.ground_truth:
             argv += ["--gt", g]
@@ -234,9 +239,9 @@ def recipe_steps(
     recipe: Recipe, runs_dir: Path, generated_dir: Path, *, workers: int = 1
 ) -> RecipeSteps:
     """The steps of `recipe` with its run in `runs_dir/<name>` and its generated logs in
-    `generated_dir/<recipe file's name>/` (shared by the points of a sweep); `workers`:
-    processes per stage."""
-    gen = generated_dir / recipe.path.stem
+    `generated_dir/<dataset>/` (shared by the points of a sweep); `workers`: processes per
+    stage."""
+    gen = generated_dir / recipe.dataset
     sources: list[SourceStep] = []
     inputs: list[SourceStep | Path] = []
     for k, src in enumerate(recipe.logs):
