@@ -23,6 +23,18 @@ _RECIPES = click.argument(
 )
 
 
+def _folder_option(name: str, default: str, help_text: str) -> Callable[..., Any]:
+    return click.option(
+        name,
+        f"{name[2:]}_dir",
+        default=Path(default),
+        show_default=True,
+        type=click.Path(file_okay=False, path_type=Path),
+        metavar="DIR",
+        help=help_text,
+    )
+
+
 def _cluster_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Where the runs go: `--scheduler ADDRESS`, `--local-workers N` or `--serial`; where
     their files go: `--runs DIR`, `--generated DIR`; `--stage-workers N`."""
@@ -47,21 +59,11 @@ def _cluster_options(func: Callable[..., Any]) -> Callable[..., Any]:
                 is_flag=True,
                 help="Run the recipes one after another in this process (no Dask).",
             ),
-            click.option(
-                "--runs",
-                "runs_dir",
-                default=Path("runs"),
-                show_default=True,
-                type=click.Path(file_okay=False, path_type=Path),
-                help="Run directories go in DIR/<recipe name>.",
-            ),
-            click.option(
+            _folder_option("--runs", "runs", "Run directories go in DIR/<recipe name>."),
+            _folder_option(
                 "--generated",
-                "generated_dir",
-                default=Path("datasets/generated"),
-                show_default=True,
-                type=click.Path(file_okay=False, path_type=Path),
-                help="Imported and simulated logs go in DIR/<recipe name>/ (not in git).",
+                "datasets/generated",
+                "Imported and simulated logs go in DIR/<dataset>/ (not in git).",
             ),
             click.option(
                 "--stage-workers",

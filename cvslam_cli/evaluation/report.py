@@ -80,6 +80,20 @@ def _table(frame: pd.DataFrame, float_format: str = "{:.3f}") -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
 
 
+def _page_start(title: str, subtitle: str) -> list[str]:
+    """The head of a page and its title and subtitle."""
+    return [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title>",
+        f"<style>{_CSS}</style>",
+        f"<script>{_SCRIPT}</script>",
+        "</head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        f'<p class="sub">{html.escape(subtitle)}</p>',
+    ]
+
+
 def render_report(
     *,
     title: str,
@@ -93,14 +107,7 @@ def render_report(
 ) -> str:
     """The report page as a string (module docstring)."""
     parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{html.escape(title)}</title>",
-        f"<style>{_CSS}</style>",
-        f"<script>{_SCRIPT}</script>",
-        "</head><body>",
-        f"<h1>{html.escape(title)}</h1>",
-        f'<p class="sub">{html.escape(subtitle)}</p>',
+        *_page_start(title, subtitle),
         "<h2>Headline</h2>",
         _table(headline),
         f'<p class="note">{html.escape(headline_note)}</p>',
@@ -145,14 +152,7 @@ def render_summary(
         for run, url in reports.items()
     )
     parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{html.escape(title)}</title>",
-        f"<style>{_CSS}</style>",
-        f"<script>{_SCRIPT}</script>",
-        "</head><body>",
-        f"<h1>{html.escape(title)}</h1>",
-        f'<p class="sub">{html.escape(subtitle)}</p>',
+        *_page_start(title, subtitle),
         "<h2>Runs</h2>",
         _table(table),
         f"<figure>{_png_tag(figure_png, title)}"
