@@ -88,7 +88,7 @@ def make_sources(steps: RecipeSteps) -> None:
         if done.get(key) == command and _present(step):
             log.info("%s: %s is up to date", steps.recipe.name, step.out)
             continue
-        log.info("%s: cvslam %s", steps.recipe.name, command)
+        log.info("%s: cvslam %s", steps.recipe.name, " ".join(step.argv))
         done.pop(key, None)
         write_text_atomic(record, yaml.safe_dump(done))  # invalid until remade
         if step.out.is_dir():

@@ -246,7 +246,12 @@ class RunDir:
         `create`: make the directory first (extract); otherwise a directory that does not
         exist is not locked (the stage's own error says what is missing)."""
         if create:
-            self.path.mkdir(parents=True, exist_ok=True)
+            try:
+                self.path.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise CvslamError(
+                    f"{self.path}: cannot create the run directory ({exc.strerror or exc})"
+                ) from None
         if not self.path.is_dir():
             yield
             return
@@ -314,7 +319,10 @@ def _run_log(path: Path, command: str) -> Iterator[None]:
     """Append the `cvslam` logger's lines (at its present level) to `path`, with times,
     between a line naming `command` and one saying how it ended."""
     logger = logging.getLogger("cvslam")
-    handler = logging.FileHandler(path, encoding="utf-8")
+    try:
+        handler = logging.FileHandler(path, encoding="utf-8")
+    except OSError as exc:
+        raise CvslamError(f"{path}: cannot write the run's log ({exc.strerror or exc})") from None
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     logger.addHandler(handler)
     started = time.perf_counter()

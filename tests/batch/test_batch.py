@@ -227,3 +227,21 @@ def test_sweep_runs_every_grid_point_and_writes_the_summary(made, tmp_path, cvsl
     for point, align in zip(points, ("none", "se3"), strict=True):
         cfg = yaml.safe_load((tmp_path / "runs" / point / "run.yaml").read_text())["config"]
         assert cfg["eval"]["align"] == align
+
+
+def test_summary_of_a_run_without_eval_is_one_line(tmp_path, cvslam):
+    (tmp_path / "r").mkdir()
+    res = cvslam("summary", tmp_path / "r", "-o", tmp_path / "s")
+    assert res.code == 1 and len(res.err.strip().splitlines()) == 1
+    assert "r/eval/metrics.csv: not found; run `cvslam eval" in res.err
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_batch_options_are_exclusive_and_recipes_checked_first(project, cvslam):
+    res = cvslam("batch", project / "datasets" / "tiny_a.yaml", "--serial", "--local-workers", 2)
+    assert res.code == 2 and "at most one of --scheduler, --local-workers, --serial" in res.err
+    bad = project / "broken" / "unknown.yaml"
+    bad.write_text("logs: [{file: x.mcap}]\nvehicle: uav1\n")
+    res = cvslam("batch", project / "datasets" / "tiny_a.yaml", bad, "--serial")
+    assert res.code == 1 and f"{bad}: vehicle: unknown key" in res.err
+    assert not (project / "runs" / "unknown").exists()
