@@ -199,4 +199,72 @@ def sweep(recipe: Path, grid: tuple[str, ...], output: Path | None, **opts: Any)
     _fail_if_any_failed(results)
 
 
-COMMANDS = (batch, summary, sweep)
+@click.command()
+@_RECIPES
+@click.option(
+    "--param",
+    "params",
+    multiple=True,
+    required=True,
+    metavar="KEY.PATH=LOW:HIGH[:log|:int]",
+    help="A config key to search and its range (repeatable).",
+)
+@click.option("--trials", type=click.IntRange(min=1), default=20, show_default=True)
+@click.option(
+    "--estimate",
+    default="cooperative NH-inf",
+    show_default=True,
+    help="The estimate whose mean ATE RMSE (over recipes and vehicles) is minimised.",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="The sampler's seed.")
+@_cluster_options
+@click.option(
+    "-o",
+    "--output",
+    default=None,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="OUTPUT_trials.csv (values, objective) and the summary OUTPUT.csv/.html; default "
+    "RUNS/tune.",
+)
+def tune(
+    recipes: tuple[Path, ...],
+    params: tuple[str, ...],
+    trials: int,
+    estimate: str,
+    seed: int,
+    output: Path | None,
+    **opts: Any,
+) -> None:
+    """Search config values minimising the ATE on RECIPE... (Optuna, TPE): each trial runs
+    every recipe with its values (RUNS/<recipe>__trialNNN) on the cluster or --serial."""
+    from cvslam_cli.batch.runner import executor
+    from cvslam_cli.batch.tune import parse_param
+    from cvslam_cli.batch.tune import tune as search
+
+    _check_cluster_choice(opts["scheduler"], opts["local_workers"], opts["serial"])
+    loaded = [load_recipe(r) for r in recipes]
+    parsed = [parse_param(p) for p in params]
+    out = output or opts["runs_dir"] / "tune"
+    with executor(opts["serial"], opts["scheduler"], opts["local_workers"]) as run_many:
+        result = search(
+            loaded,
+            parsed,
+            trials=trials,
+            estimate=estimate,
+            seed=seed,
+            runs_dir=opts["runs_dir"],
+            generated_dir=opts["generated_dir"],
+            workers=opts["stage_workers"],
+            run_many=run_many,
+            report=_report,
+            out=out,
+        )
+    _summary(result.run_dirs, out)
+    log.info("trials: %s", result.trials_csv)
+    if result.best is None:
+        raise CvslamError(f"cvslam tune: every trial failed (see {result.trials_csv})")
+    best = ", ".join(f"{k}={v:.6g}" for k, v in result.best.items())
+    click.echo(f"best: {best} (mean ATE RMSE of {estimate}: {result.best_value:.4f} m)")
+
+
+COMMANDS = (batch, summary, sweep, tune)

@@ -9,9 +9,12 @@ the timing columns and times that `io/rundir.py` lists).
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 from cvslam_cli.batch.execute import RecipeResult, make_sources, run_recipe
 from cvslam_cli.batch.recipe import Recipe, RecipeSteps, recipe_steps
@@ -38,6 +41,20 @@ def plan_batch(
     return [recipe_steps(r, runs, gen, workers=workers) for r in recipes]
 
 
+RunMany = Callable[[Sequence[RecipeSteps], Report], list[RecipeResult]]
+
+
+@contextlib.contextmanager
+def executor(serial: bool, scheduler: str | None, local_workers: int | None) -> Iterator[RunMany]:
+    """A function running a list of recipes (several times, e.g. the trials of a search):
+    serially in this process, or on one Dask cluster kept for the block."""
+    if serial:
+        yield _run_serially
+        return
+    with cluster(scheduler, local_workers) as client:
+        yield functools.partial(_run_on_cluster, client)
+
+
 def run_batch(
     steps: Sequence[RecipeSteps],
     *,
@@ -47,42 +64,50 @@ def run_batch(
     report: Report,
 ) -> list[RecipeResult]:
     """Run every recipe; `report` is called as each one ends."""
-    results: dict[int, RecipeResult] = {}
-    if serial:
-        for k, s in enumerate(steps):
-            results[k] = run_recipe(s)
-            report(results[k], k + 1, len(steps))
-        return [results[k] for k in range(len(steps))]
-    with cluster(scheduler, local_workers) as client:
-        from distributed import as_completed
+    with executor(serial, scheduler, local_workers) as run_many:
+        return run_many(steps, report)
 
-        token = uuid.uuid4().hex[:8]
-        index = {}
-        made: dict[Path, str] = {}  # generated folder -> "" or why it could not be made
-        for k, s in enumerate(steps):
-            shared = sum(x.generated_dir == s.generated_dir for x in steps) > 1
-            if shared and s.generated_dir not in made:
-                # logs shared by several recipes (a sweep's points) are made once, first
-                try:
-                    make_sources(s)
-                    made[s.generated_dir] = ""
-                except CvslamError as exc:
-                    made[s.generated_dir] = str(exc)
-            if made.get(s.generated_dir):
-                results[k] = RecipeResult(s.recipe.name, str(s.run_dir), made[s.generated_dir], 0)
-                report(results[k], len(results), len(steps))
-                continue
-            future = client.submit(run_recipe, s, key=f"cvslam-{s.recipe.name}-{token}", pure=False)
-            index[future] = k
-        for future in as_completed(index):
-            k = index[future]
+
+def _run_serially(steps: Sequence[RecipeSteps], report: Report) -> list[RecipeResult]:
+    results = []
+    for s in steps:
+        results.append(run_recipe(s))
+        report(results[-1], len(results), len(steps))
+    return results
+
+
+def _run_on_cluster(
+    client: Any, steps: Sequence[RecipeSteps], report: Report
+) -> list[RecipeResult]:
+    from distributed import as_completed
+
+    results: dict[int, RecipeResult] = {}
+    token = uuid.uuid4().hex[:8]
+    index = {}
+    made: dict[Path, str] = {}  # generated folder -> "" or why it could not be made
+    for k, s in enumerate(steps):
+        shared = sum(x.generated_dir == s.generated_dir for x in steps) > 1
+        if shared and s.generated_dir not in made:
+            # logs shared by several recipes (a sweep's points) are made once, first
             try:
-                result = future.result()
-            except Exception as exc:  # the worker died or the task could not run
-                s = steps[k]
-                result = RecipeResult(
-                    s.recipe.name, str(s.run_dir), f"task failed: {type(exc).__name__}: {exc}", 0.0
-                )
-            results[k] = result
-            report(result, len(results), len(steps))
+                make_sources(s)
+                made[s.generated_dir] = ""
+            except CvslamError as exc:
+                made[s.generated_dir] = str(exc)
+        if made.get(s.generated_dir):
+            results[k] = RecipeResult(s.recipe.name, str(s.run_dir), made[s.generated_dir], 0)
+            report(results[k], len(results), len(steps))
+            continue
+        future = client.submit(run_recipe, s, key=f"cvslam-{s.recipe.name}-{token}", pure=False)
+        index[future] = k
+    for future in as_completed(index):
+        k = index[future]
+        try:
+            result = future.result()
+        except Exception as exc:  # the worker died or the task could not run
+            s = steps[k]
+            error = f"task failed: {type(exc).__name__}: {exc}"
+            result = RecipeResult(s.recipe.name, str(s.run_dir), error, 0.0)
+        results[k] = result
+        report(result, len(results), len(steps))
     return [results[k] for k in range(len(steps))]

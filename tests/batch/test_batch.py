@@ -245,3 +245,25 @@ def test_batch_options_are_exclusive_and_recipes_checked_first(project, cvslam):
     res = cvslam("batch", project / "datasets" / "tiny_a.yaml", bad, "--serial")
     assert res.code == 1 and f"{bad}: vehicle: unknown key" in res.err
     assert not (project / "runs" / "unknown").exists()
+
+
+def test_tune_searches_and_records_each_trial(made, tmp_path, cvslam):
+    res = cvslam(
+        "tune", made / "datasets" / "tiny_a.yaml", "--param", "fuse.hinf.gamma=3:100:log",
+        "--trials", 3, "--serial", "--runs", tmp_path / "runs", "--generated", made / "generated",
+        "-o", tmp_path / "study",
+    )  # fmt: skip
+    assert res.code == 0, res.err
+    trials = pd.read_csv(tmp_path / "study_trials.csv")
+    assert list(trials["trial"]) == [0, 1, 2] and set(trials["state"]) == {"complete"}
+    assert trials["fuse.hinf.gamma"].between(3, 100).all()
+    for row in trials.itertuples(index=False):
+        run = tmp_path / "runs" / f"tiny_a__trial{row.trial:03d}"
+        cfg = yaml.safe_load((run / "run.yaml").read_text())["config"]
+        assert cfg["fuse"]["hinf"]["gamma"] == row._1  # the trial's value, as run
+        m = pd.read_csv(run / "eval" / "metrics.csv")
+        coop = m.loc[m["estimate"] == "cooperative NH-inf", "ate_rmse_m"]
+        assert row.mean_ate_rmse_m == pytest.approx(coop.mean(), rel=1e-12)
+    best = trials.loc[trials["mean_ate_rmse_m"].idxmin()]
+    assert f"best: fuse.hinf.gamma={best['fuse.hinf.gamma']:.6g}" in res.out
+    assert len(pd.read_csv(tmp_path / "study.csv")) == 3 * 2 * 3  # trials x uavs x estimates

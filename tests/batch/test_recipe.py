@@ -123,3 +123,13 @@ def test_two_recipes_of_one_name_are_refused(tmp_path):
     b = load_recipe(_write(tmp_path / "x", {"logs": [{"file": "a.mcap"}]}, "same.yaml"))
     with pytest.raises(CvslamError, match="a recipe named 'same' is given twice"):
         plan_batch([a, b], tmp_path / "runs", tmp_path / "gen", workers=1)
+
+
+def test_tune_params_parse_and_bad_ones_name_the_option():
+    from cvslam_cli.batch.tune import Param, parse_param
+
+    assert parse_param("fuse.hinf.gamma=2:20:log") == Param("fuse.hinf.gamma", 2.0, 20.0, "log")
+    assert parse_param("a.b=1:5:int").scale == "int" and parse_param("a.b=0:1").scale == "linear"
+    for bad in ("a.b", "a.b=1", "a.b=5:1", "a.b=0:1:log", "a.b=1:2:cubic", "a.b=x:2", "=1:2"):
+        with pytest.raises(ConfigError, match=r"--param "):
+            parse_param(bad)
