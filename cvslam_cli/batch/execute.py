@@ -124,8 +124,3 @@ def run_recipe(steps: RecipeSteps) -> RecipeResult:
             error = f"internal error {type(exc).__name__}: {exc} (see the run's cvslam.log)"
             return RecipeResult(name, str(steps.run_dir), error, time.perf_counter() - t0)
     return RecipeResult(name, str(steps.run_dir), "", time.perf_counter() - t0)
-
-
-def absolute(path: Path) -> Path:
-    """`path` made absolute (the steps run on workers whose working folder may differ)."""
-    return path if path.is_absolute() else Path.cwd() / path

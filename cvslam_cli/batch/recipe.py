@@ -126,7 +126,7 @@ def _source(path: Path, k: int, entry: Any) -> LogSource:
     if unknown:
         allowed = ", ".join(sorted(_SOURCE_KEYS[kind]))
         raise _fail(path, f"{where}.{unknown[0]}", f"unknown key (a {kind} entry has {allowed})")
-    base = path.parent
+    base = path.absolute().parent
     options = {key: v for key, v in entry.items() if key != kind}
     if kind == "import":
         if entry["import"] not in _IMPORT_FORMATS:
@@ -177,11 +177,12 @@ def load_recipe(path: Path) -> Recipe:
         description=str(raw.get("description", "")).strip(),
         logs=logs,
         config_files=tuple(
-            Path(_expand(c, path.parent)) for c in _strings(path, "config", raw.get("config"))
+            Path(_expand(c, path.absolute().parent))
+            for c in _strings(path, "config", raw.get("config"))
         ),
         overrides=tuple(overrides),
         ground_truth=tuple(
-            _gt_entry(g, path.parent)
+            _gt_entry(g, path.absolute().parent)
             for g in _strings(path, "ground_truth", raw.get("ground_truth"))
         ),
     )
