@@ -6,7 +6,9 @@ Each recipe simulates 6 s of two small UAVs (376 x 240 images, seeds 1-4) and ru
 (no logs, no runs). Baseline, measured in the same run: the serial batch (`cvslam batch
 --serial`, one recipe after another in one process). Printed: each mode's wall time and its
 speed-up over the serial one (2 cores: at most 2x; what is left is the start of the worker
-processes or of the cluster, and the recipes' unequal lengths). Asserted: every mode made
+processes or of the cluster, and the recipes' unequal lengths), and the CPU seconds of all
+its processes (CPU / wall: the cores it kept busy; on a machine shared with other work the
+wall times say little without it). Asserted: every mode made
 every report, and the cluster's feature files equal the serial run's byte for byte.
 """
 
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import filecmp
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -57,13 +60,17 @@ def _clean(root: Path) -> None:
         shutil.rmtree(root / folder, ignore_errors=True)
 
 
-def _timed(cmd: list[str]) -> float:
+def _timed(cmd: list[str]) -> tuple[float, float]:
+    """(wall s, CPU s of the command and every process it started) of `cmd`."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    return wall
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu
 
 
 def _reports(root: Path) -> bool:
@@ -96,7 +103,10 @@ def test_batch_serial_vs_make_j2_vs_dask_two_workers(project):
         for v in ("uav1", "uav2"):
             a = project / "runs_serial" / n / "features" / f"{v}.npz"
             assert filecmp.cmp(a, project / "runs" / n / "features" / f"{v}.npz", shallow=False)
-    base = walls["serial (cvslam batch --serial)"]
-    print(f"\nbatch of {len(NAMES)} recipes (load average {os.getloadavg()[0]:.1f}):")
-    for mode, wall in walls.items():
-        print(f"  {mode:34s} {wall:6.1f} s   speed-up {base / wall:.2f}x")
+    base = walls["serial (cvslam batch --serial)"][0]
+    print(f"\nbatch of {len(NAMES)} recipes (load average after: {os.getloadavg()[0]:.1f}):")
+    for mode, (wall, cpu) in walls.items():
+        print(
+            f"  {mode:34s} {wall:6.1f} s wall  {cpu:6.1f} s CPU ({cpu / wall:.2f} cores)"
+            f"   speed-up {base / wall:.2f}x"
+        )
