@@ -31,7 +31,7 @@ demo: install
 	@bash scripts/demo.sh "$(BIN)/cvslam" "$(SHARED_DATA)" "$(DEMO_DIR)"
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache
+	rm -rf $(VENV) runs datasets/generated .pytest_cache .ruff_cache
 
 # Render the demo's report in headless Chromium and check every image loaded (needs chromium).
 check-report: install

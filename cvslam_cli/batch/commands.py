@@ -79,6 +79,15 @@ def _cluster_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
+def _summary_option(*names: str) -> Callable[..., Any]:
+    """A FILE option naming where a summary goes (`names`: the option's names, then its
+    help)."""
+    *decls, help_text = names
+    return click.option(
+        *decls, default=None, type=click.Path(dir_okay=False, path_type=Path), help=help_text
+    )
+
+
 def _check_cluster_choice(scheduler: str | None, local_workers: int | None, serial: bool) -> None:
     if sum((scheduler is not None, local_workers is not None, serial)) > 1:
         raise click.UsageError("give at most one of --scheduler, --local-workers, --serial")
@@ -121,12 +130,8 @@ def _fail_if_any_failed(results: Sequence[RecipeResult]) -> None:
 @click.command()
 @_RECIPES
 @_cluster_options
-@click.option(
-    "--summary",
-    "summary_out",
-    default=None,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Also write the summary of the runs (FILE.csv, FILE.html).",
+@_summary_option(
+    "--summary", "summary_out", "Also write the summary of the runs (FILE.csv, FILE.html)."
 )
 def batch(recipes: tuple[Path, ...], summary_out: Path | None, **opts: Any) -> None:
     """Run every RECIPE (datasets/*.yaml): make its logs, then every stage, on a Dask cluster
@@ -182,12 +187,8 @@ def summary(run_dirs: tuple[Path, ...], output: Path) -> None:
     "product of the axes).",
 )
 @_cluster_options
-@click.option(
-    "-o",
-    "--output",
-    default=None,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="The summary (OUTPUT.csv, OUTPUT.html); default RUNS/<recipe>_sweep.",
+@_summary_option(
+    "-o", "--output", "The summary (OUTPUT.csv, OUTPUT.html); default RUNS/<recipe>_sweep."
 )
 def sweep(recipe: Path, grid: tuple[str, ...], output: Path | None, **opts: Any) -> None:
     """Run RECIPE at every point of the --grid (each point a run directory named by its
@@ -218,13 +219,10 @@ def sweep(recipe: Path, grid: tuple[str, ...], output: Path | None, **opts: Any)
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="The sampler's seed.")
 @_cluster_options
-@click.option(
+@_summary_option(
     "-o",
     "--output",
-    default=None,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="OUTPUT_trials.csv (values, objective) and the summary OUTPUT.csv/.html; default "
-    "RUNS/tune.",
+    "OUTPUT_trials.csv (values, objective) and the summary OUTPUT.csv/.html; default RUNS/tune.",
 )
 def tune(
     recipes: tuple[Path, ...],
