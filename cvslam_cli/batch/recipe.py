@@ -111,7 +111,7 @@ def _expand(text: str, base: Path) -> str:
     """`text` with `{shared_data}` replaced; a relative path made relative to `base`."""
     text = text.replace("{shared_data}", str(shared_data_dir()))
     p = Path(text)
-    return str(p if p.is_absolute() else base / p)
+    return os.path.normpath(p if p.is_absolute() else base / p)
 
 
 def _source(path: Path, k: int, entry: Any) -> LogSource:
