@@ -4,7 +4,8 @@ A recipe is one run: one dataset, or one mission of several logs (a cooperative 
 its vehicles). It says
 
 - `logs`: a list of sources, each one of
-  `{file: PATH}` (an MCAP file, or what the log readers accept),
+  `{file: PATH[, vehicle: NAME]}` (a log: MCAP, rosbag2 folder, .db3, ROS 1 .bag; bound to
+  vehicle NAME as `NAME=PATH` on the command line when given),
   `{import: euroc|kitti, path: DIR, vehicle: NAME[, rate_hz: HZ]}` (`cvslam import`),
   `{simulate: SCENARIO[, seed: N][, duration_s: S][, set: [KEY=VALUE, ...]]}` (`cvslam simulate`);
 - `config`: config files, `set`: `KEY.PATH=VALUE` overrides (as on the command line);
@@ -37,7 +38,7 @@ _KEYS = {
     "mosaic",
 }
 _SOURCE_KEYS = {
-    "file": {"file"},
+    "file": {"file", "vehicle"},
     "import": {"import", "path", "vehicle", "rate_hz"},
     "simulate": {"simulate", "seed", "duration_s", "set"},
 }
@@ -139,7 +140,9 @@ def _source(path: Path, k: int, entry: Any) -> LogSource:
     if not isinstance(entry[kind], str):
         raise _fail(path, f"{where}.{kind}", "expected a string")
     if kind == "file":
-        return LogSource(kind, _expand(entry["file"], base), {})
+        if "vehicle" in options and not isinstance(options["vehicle"], str):
+            raise _fail(path, f"{where}.vehicle", "expected a string")
+        return LogSource(kind, _expand(entry["file"], base), options)
     if "seed" in options and not isinstance(options["seed"], int):
         raise _fail(path, f"{where}.seed", "expected an integer")
     options["set"] = _strings(path, f"{where}.set", options.get("set"))
@@ -246,8 +249,9 @@ def recipe_steps(
     sources: list[SourceStep] = []
     inputs: list[SourceStep | Path] = []
     for k, src in enumerate(recipe.logs):
-        if src.kind == "file":
-            inputs.append(Path(src.target))
+        if src.kind == "file":  # bound to a vehicle: NAME=PATH, as on the command line
+            vehicle = src.options.get("vehicle")
+            inputs.append(Path(f"{vehicle}={src.target}" if vehicle else src.target))
             continue
         if src.kind == "import":
             out = gen / f"{src.options['vehicle']}.mcap"

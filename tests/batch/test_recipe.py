@@ -62,6 +62,7 @@ def _write(tmp_path: Path, data: object, name: str = "r.yaml") -> Path:
         ({"logs": [{"simulate": "uav2_paper", "seed": "one"}]}, "logs[0].seed: expected an int"),
         ({"logs": [{"simulate": "uav2_paper", "speed": 2}]}, "logs[0].speed: unknown key"),
         ({"logs": [{"file": "a.mcap"}], "mosaic": "yes"}, "mosaic: expected true or false"),
+        ({"logs": [{"file": "a.mcap", "vehicle": 3}]}, "logs[0].vehicle: expected a string"),
         ({"logs": [{"file": "a.mcap"}], "set": [3]}, "set: expected a list of strings"),
     ],
 )
@@ -78,7 +79,7 @@ def test_paths_are_relative_to_the_recipe_and_options_become_overrides(tmp_path)
         tmp_path,
         {
             "description": "two bags of one mission",
-            "logs": [{"file": "bags/a.mcap"}, {"file": "/abs/b.mcap"}],
+            "logs": [{"file": "bags/a.mcap"}, {"file": "/abs/b.mcap", "vehicle": "tb3"}],
             "config": ["cfg.yaml"],
             "vehicles": {"tb3": {"kind": "ugv"}},
             "comparisons": ["single"],
@@ -88,7 +89,7 @@ def test_paths_are_relative_to_the_recipe_and_options_become_overrides(tmp_path)
     )
     recipe = load_recipe(path)
     argv = recipe_steps(recipe, tmp_path / "runs", tmp_path / "gen").run_argv()
-    assert argv[1:3] == [str(tmp_path / "bags" / "a.mcap"), "/abs/b.mcap"]
+    assert argv[1:3] == [str(tmp_path / "bags" / "a.mcap"), "tb3=/abs/b.mcap"]
     assert ["--config", str(tmp_path / "cfg.yaml")] == argv[argv.index("--config") :][:2]
     assert f"tb3={tmp_path / 'gt' / 'tb3.tum'}" in argv
     cfg = load_config((), recipe.overrides)
