@@ -84,15 +84,20 @@ def summary_table(run_dirs: Sequence[Path]) -> pd.DataFrame:
 
 
 def _figure_png(table: pd.DataFrame) -> bytes:
-    """ATE RMSE as grouped bars: one group per dataset / vehicle, one bar per estimate."""
+    """ATE RMSE as grouped bars: one group per dataset / vehicle, one bar per estimate (in
+    the report's order), on a log scale: dead reckoning is often 100x the filters' error."""
+    from cvslam_cli.evaluation.stage import DR_LABEL, RUN_LABELS
+
     groups = table.assign(group=table["dataset"] + " / " + table["vehicle"].astype(str))
     wide = groups.pivot_table(index="group", columns="estimate", values="ate_rmse_m", sort=False)
-    order = list(dict.fromkeys(table["estimate"]))
-    wide = wide[[c for c in order if c in wide.columns]]
+    known = [*RUN_LABELS.values(), DR_LABEL]
+    order = [c for c in known if c in wide.columns]
+    wide = wide[order + [c for c in wide.columns if c not in order]]
     fig = figs.headline_bars(wide)
     ax = fig.axes[0]
+    ax.set_yscale("log")
     ax.set_xlabel("dataset / vehicle")
-    ax.set_title("ATE RMSE per dataset and vehicle, by estimate")
+    ax.set_title("ATE RMSE per dataset and vehicle, by estimate (log scale)")
     ax.tick_params(axis="x", labelrotation=20)
     fig.set_size_inches(max(8.0, 1.2 * len(wide)), 4.5)
     return figs.png_bytes(fig)
