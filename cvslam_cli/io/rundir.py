@@ -246,13 +246,11 @@ class RunDir:
         `create`: make the directory first (extract); otherwise a directory that does not
         exist is not locked (the stage's own error says what is missing)."""
         if create:
-            try:
+            with contextlib.suppress(OSError):  # the stage's own check says what is wrong
                 self.path.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise CvslamError(
-                    f"{self.path}: cannot create the run directory ({exc.strerror or exc})"
-                ) from None
-        if not self.path.is_dir():
+        if not self.path.is_dir() or not os.access(self.path, os.W_OK):
+            # nothing can be written there, so nothing to race on: the stage's own check
+            # names the folder and the problem
             yield
             return
         with _LOCKS.hold(self.path, RunLayout(self.path).lock_file) as first:
@@ -272,7 +270,8 @@ class _LockTable:
 
     @contextlib.contextmanager
     def hold(self, run_dir: Path, lock_file: Path) -> Iterator[bool]:
-        """Yield True for the outermost hold of `run_dir` by this process, False inside it."""
+        """Yield True for the outermost hold of `run_dir` by this process, False inside it
+        or where the lock file cannot be written (nor can anything else there)."""
         key = run_dir.resolve()
         with self._mutex:
             fd, depth = self._held.get(key, (-1, 0))
@@ -280,13 +279,13 @@ class _LockTable:
                 fd = _acquire(run_dir, lock_file)
             self._held[key] = (fd, depth + 1)
         try:
-            yield depth == 0
+            yield depth == 0 and fd >= 0
         finally:
             with self._mutex:
                 fd, depth = self._held.pop(key)
                 if depth > 1:
                     self._held[key] = (fd, depth - 1)
-                else:
+                elif fd >= 0:
                     os.close(fd)  # releases the flock
 
 
@@ -298,8 +297,8 @@ def _acquire(run_dir: Path, lock_file: Path) -> int:
     id and host written in it; CvslamError naming the holder when another process has it."""
     try:
         fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as exc:
-        raise CvslamError(f"{lock_file}: cannot open the run directory's lock: {exc}") from None
+    except OSError:
+        return -1  # nothing can be written there: the stage's own check names the problem
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
@@ -321,8 +320,9 @@ def _run_log(path: Path, command: str) -> Iterator[None]:
     logger = logging.getLogger("cvslam")
     try:
         handler = logging.FileHandler(path, encoding="utf-8")
-    except OSError as exc:
-        raise CvslamError(f"{path}: cannot write the run's log ({exc.strerror or exc})") from None
+    except OSError:  # the stage's own check names what cannot be written
+        yield
+        return
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     logger.addHandler(handler)
     started = time.perf_counter()
