@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.install-stamp
 SHARED_DATA ?= $(if $(CVSLAM_SHARED_DATA),$(CVSLAM_SHARED_DATA),../shared/data)
 DEMO_DIR ?= runs/demo
 
-.PHONY: install test lint bench demo clean check-report fuzz
+.PHONY: install test lint bench demo clean check-report fuzz batch all-datasets summary
 
 install: $(STAMP)
 
@@ -31,7 +31,7 @@ demo: install
 	@bash scripts/demo.sh "$(BIN)/cvslam" "$(SHARED_DATA)" "$(DEMO_DIR)"
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache
+	rm -rf $(VENV) runs datasets/generated .pytest_cache .ruff_cache
 
 # Render the demo's report in headless Chromium and check every image loaded (needs chromium).
 check-report: install
@@ -42,3 +42,26 @@ check-report: install
 FUZZ_VARIANTS ?= 600
 fuzz: install
 	CVSLAM_FUZZ_VARIANTS=$(FUZZ_VARIANTS) $(BIN)/python -m pytest -q -s -p no:cacheprovider tests/io/test_mcap_fuzz.py
+
+# ---------------------------------------------------------------------------- datasets
+# One recipe per dataset in $(DATASETS_DIR) (datasets/README.md). `make runs/NAME/eval/report.html`
+# builds one, `make batch` (= all-datasets) every one, `make -j N batch` N at a time (each
+# recipe writes only its own run and generated folders); `make summary` compares them. A
+# second `make batch` has nothing to do; after a recipe changes, its stages skip what is up to
+# date. CVSLAM / INSTALL: another cvslam command, and what it needs first (the tests use this).
+DATASETS_DIR  ?= datasets
+RUNS_DIR      ?= runs
+GENERATED_DIR ?= $(DATASETS_DIR)/generated
+CVSLAM        ?= $(BIN)/cvslam
+INSTALL       ?= $(STAMP)
+RECIPES  := $(sort $(wildcard $(DATASETS_DIR)/*.yaml))
+DATASETS := $(patsubst $(DATASETS_DIR)/%.yaml,%,$(RECIPES))
+REPORTS  := $(patsubst %,$(RUNS_DIR)/%/eval/report.html,$(DATASETS))
+
+$(RUNS_DIR)/%/eval/report.html: $(DATASETS_DIR)/%.yaml | $(INSTALL)
+	$(CVSLAM) batch --serial --runs $(RUNS_DIR) --generated $(GENERATED_DIR) $<
+
+batch all-datasets: $(REPORTS)
+
+summary: $(REPORTS)
+	$(CVSLAM) summary $(patsubst %,$(RUNS_DIR)/%,$(DATASETS)) -o $(RUNS_DIR)/summary

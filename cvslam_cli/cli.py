@@ -20,6 +20,7 @@ from typing import Any
 import click
 
 from cvslam_cli import __version__
+from cvslam_cli.batch.commands import COMMANDS as BATCH_COMMANDS
 from cvslam_cli.config import Config, dump_config, load_config
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_text_atomic
@@ -34,11 +35,17 @@ class _OneLineFormatter(logging.Formatter):
         return f"cvslam: {prefix}{record.getMessage()}"
 
 
+class _TerminalHandler(logging.StreamHandler):
+    """The handler writing the one-line messages to stderr."""
+
+
 def _setup_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _TerminalHandler(sys.stderr)
     handler.setFormatter(_OneLineFormatter())
-    log.handlers[:] = [handler]
+    # replace the terminal handler of an earlier call, keep others (a run's log file)
+    log.handlers[:] = [h for h in log.handlers if not isinstance(h, _TerminalHandler)]
+    log.addHandler(handler)
     log.setLevel(level)
     log.propagate = False
 
@@ -125,6 +132,14 @@ def bound_logs(logs: Sequence[Path], cfg: Config) -> tuple[list[Path], Config]:
 
     paths, bound = split_log_args(logs)
     return paths, dataclasses.replace(cfg, logs=bind_logs(cfg.logs, bound))
+
+
+def run_session(run_dir: Path, command: str, *, create: bool = False) -> Any:
+    """The run directory held by this process while `command` works on it: one process at a
+    time, the log copied to RUN_DIR/cvslam.log (`io/rundir.py`)."""
+    from cvslam_cli.io.rundir import RunDir
+
+    return RunDir(run_dir).session(command, create=create)
 
 
 def write_resolved_config(cfg: Config, path: Path) -> Path:
@@ -391,9 +406,23 @@ def simulate(
     show_default=True,
     help="Processes working on frames in parallel.",
 )
+@click.option(
+    "--scheduler",
+    metavar="ADDRESS",
+    default=None,
+    help="Spread the frames over the Dask cluster at ADDRESS (tcp://host:8786) instead of "
+    "--workers local processes; same output (docs/batch.md).",
+)
 @_FORCE_STAGE
 @config_options
-def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cfg: Config) -> None:
+def extract(
+    logs: tuple[Path, ...],
+    run_dir: Path,
+    workers: int,
+    scheduler: str | None,
+    force: bool,
+    cfg: Config,
+) -> None:
     """Adaptive SIFT + stereo-constrained matching on every stereo frame of LOG...
     (NAME=LOG: the log of vehicle NAME).
 
@@ -401,24 +430,32 @@ def extract(logs: tuple[Path, ...], run_dir: Path, workers: int, force: bool, cf
     <vehicle>_stats.csv, and records the stage in RUN_DIR/run.yaml.
     """
     paths, cfg = bound_logs(logs, cfg)
-    do_extract(cfg, paths, run_dir, workers=workers, force=force)
+    do_extract(cfg, paths, run_dir, workers=workers, force=force, scheduler=scheduler)
 
 
 def do_extract(
-    cfg: Config, logs: Sequence[Path], run_dir: Path, *, workers: int, force: bool
+    cfg: Config,
+    logs: Sequence[Path],
+    run_dir: Path,
+    *,
+    workers: int,
+    force: bool,
+    scheduler: str | None = None,
 ) -> None:
     from cvslam_cli.features.stage import run
 
-    summary = run(
-        cfg,
-        list(logs),
-        run_dir,
-        workers=workers,
-        force=force,
-        progress=log.isEnabledFor(logging.INFO),
-    )
-    layout = RunLayout(run_dir)
-    write_resolved_config(cfg, layout.extract_config)
+    with run_session(run_dir, "extract", create=True):
+        summary = run(
+            cfg,
+            list(logs),
+            run_dir,
+            workers=workers,
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+            scheduler=scheduler,
+        )
+        layout = RunLayout(run_dir)
+        write_resolved_config(cfg, layout.extract_config)
     for name, v in summary.vehicles.items():
         log.info(
             "%s: %d stereo frames (%d empty, %d/%d images unpaired), %.0f keypoints and "
@@ -486,18 +523,19 @@ def do_fuse(
 ) -> None:
     from cvslam_cli.estimation.stage import run
 
-    summary = run(
-        cfg,
-        run_dir,
-        filter_kind=filter_kind,
-        single=single,
-        log_paths=list(log_paths),
-        force=force,
-        progress=log.isEnabledFor(logging.INFO),
-    )
-    if summary.skipped:
-        return
-    write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
+    with run_session(run_dir, "fuse"):
+        summary = run(
+            cfg,
+            run_dir,
+            filter_kind=filter_kind,
+            single=single,
+            log_paths=list(log_paths),
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
+        if summary.skipped:
+            return
+        write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
     for name, v in summary.vehicles.items():
         errors = (
             f"final position error {v.final_error_m:.2f} m (dead reckoning "
@@ -580,15 +618,16 @@ def do_mosaic(
 ) -> None:
     from cvslam_cli.mosaic.stage import run
 
-    summary = run(
-        cfg,
-        run_dir,
-        source=source,
-        gsd_m=gsd_m,
-        log_paths=list(log_paths),
-        force=force,
-        progress=log.isEnabledFor(logging.INFO),
-    )
+    with run_session(run_dir, "mosaic"):
+        summary = run(
+            cfg,
+            run_dir,
+            source=source,
+            gsd_m=gsd_m,
+            log_paths=list(log_paths),
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
     if summary.skipped:
         return
     for name, m in summary.mosaics.items():
@@ -668,8 +707,10 @@ def do_eval(
 ) -> None:
     from cvslam_cli.evaluation.stage import headline_text, run
 
-    summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
-    click.echo(headline_text(summary.headline))
+    with run_session(run_dir, "eval"):
+        summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+    # labelled, so that tables of runs made in parallel (make -j) say which run they are of
+    click.echo(f"{run_dir}:\n{headline_text(summary.headline)}")
     log.info("report: %s", EvalFolder(summary.out_dir).report_html)
 
 
@@ -699,7 +740,20 @@ def run_cmd(
     unchanged are skipped. NAME=LOG: the log of vehicle NAME.
     """
     paths, cfg = bound_logs(logs, cfg)
-    do_extract(cfg, paths, run_dir, workers=workers, force=force)
+    with run_session(run_dir, "run", create=True):
+        do_run(cfg, paths, run_dir, gt=gt, workers=workers, force=force)
+
+
+def do_run(
+    cfg: Config,
+    logs: Sequence[Path],
+    run_dir: Path,
+    *,
+    gt: Sequence[str],
+    workers: int,
+    force: bool,
+) -> None:
+    do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
     do_fuse(cfg, run_dir, filter_kind="hinf", single=False, log_paths=(), force=force)
     for comparison in cfg.run.comparisons:
         filter_kind = "ekf" if comparison.startswith("ekf") else "hinf"
@@ -715,6 +769,12 @@ def run_cmd(
         log.warning(
             "eval skipped: the logs have no ground truth (give it with --gt FILE to evaluate)"
         )
+
+
+# ----------------------------------------------------------------------------- many runs
+
+for _command in BATCH_COMMANDS:  # batch, summary, sweep (cvslam_cli/batch/commands.py)
+    cli.add_command(_command)
 
 
 # ----------------------------------------------------------------------------- entry

@@ -352,11 +352,13 @@ class EvalConfig:
 @dataclass(frozen=True)
 class RunConfig:
     """`cvslam run`: the fuse runs made besides the cooperative NH-infinity one, for
-    comparison (single: each vehicle alone; ekf: the EKF; ekf_single), and whether to
-    make mosaics."""
+    comparison (single: each vehicle alone; ekf: the EKF; ekf_single), whether to
+    make mosaics, and the dataset the run is of (metrics.csv; empty: the run directory's
+    name)."""
 
     comparisons: tuple[Literal["single", "ekf", "ekf_single"], ...] = ("single", "ekf")
     mosaic: bool = True
+    dataset: str = ""
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ TIMING_COLUMNS = {
                                 "t_total_s"},
     "fuse/timeline.csv": {"ms"},
 }  # fmt: skip
-TIMED_FILES = {"run.yaml", "eval/report.html"}
+TIMED_FILES = {"run.yaml", "eval/report.html", "cvslam.log", ".lock"}
 
 
 def _pipeline(root, workers, cvslam):

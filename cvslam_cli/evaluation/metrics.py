@@ -530,15 +530,17 @@ def final_drift(
 
 def nees_position(ref_p: F64, est_p: F64, cov_p: F64) -> F64:
     """(K,) normalised estimation error squared of the position:
-    eps_k = e_k^T P_k^-1 e_k, e_k = est_p_k - ref_p_k (K, 3), P_k = cov_p[k] (K, 3, 3) the
-    estimate's position covariance (m^2). A consistent filter has E[eps_k] = 3 (chi2, 3 dof)."""
+    eps_k = e_k^T P_k^-1 e_k, e_k = est_p_k - ref_p_k (K, d), P_k = cov_p[k] (K, d, d) the
+    estimate's position covariance (m^2); d = 3, or 2 for the horizontal position of a ground
+    robot. A consistent filter has E[eps_k] = d (chi2, d dof)."""
     ref_p = np.asarray(ref_p, dtype=np.float64)
     est_p = np.asarray(est_p, dtype=np.float64)
     cov_p = np.asarray(cov_p, dtype=np.float64)
-    if ref_p.shape != est_p.shape or ref_p.ndim != 2 or ref_p.shape[1] != 3:
-        raise ValueError(f"need two (K, 3) arrays, got {ref_p.shape} and {est_p.shape}")
-    if cov_p.shape != (len(ref_p), 3, 3):
-        raise ValueError(f"need cov_p of shape ({len(ref_p)}, 3, 3), got {cov_p.shape}")
+    if ref_p.shape != est_p.shape or ref_p.ndim != 2 or not 1 <= ref_p.shape[1] <= 3:
+        raise ValueError(f"need two (K, d <= 3) arrays, got {ref_p.shape} and {est_p.shape}")
+    d = ref_p.shape[1]
+    if cov_p.shape != (len(ref_p), d, d):
+        raise ValueError(f"need cov_p of shape ({len(ref_p)}, {d}, {d}), got {cov_p.shape}")
     e = est_p - ref_p
     return np.einsum("ka,ka->k", e, np.linalg.solve(cov_p, e[:, :, None])[:, :, 0])
 

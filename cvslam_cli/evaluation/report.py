@@ -55,7 +55,11 @@ class FigureEntry:
 
 
 def _img_tag(path: Path, alt: str) -> str:
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return _png_tag(path.read_bytes(), alt)
+
+
+def _png_tag(png: bytes, alt: str) -> str:
+    data = base64.b64encode(png).decode("ascii")
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
@@ -76,6 +80,20 @@ def _table(frame: pd.DataFrame, float_format: str = "{:.3f}") -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
 
 
+def _page_start(title: str, subtitle: str) -> list[str]:
+    """The head of a page and its title and subtitle."""
+    return [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title>",
+        f"<style>{_CSS}</style>",
+        f"<script>{_SCRIPT}</script>",
+        "</head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        f'<p class="sub">{html.escape(subtitle)}</p>',
+    ]
+
+
 def render_report(
     *,
     title: str,
@@ -89,14 +107,7 @@ def render_report(
 ) -> str:
     """The report page as a string (module docstring)."""
     parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{html.escape(title)}</title>",
-        f"<style>{_CSS}</style>",
-        f"<script>{_SCRIPT}</script>",
-        "</head><body>",
-        f"<h1>{html.escape(title)}</h1>",
-        f'<p class="sub">{html.escape(subtitle)}</p>',
+        *_page_start(title, subtitle),
         "<h2>Headline</h2>",
         _table(headline),
         f'<p class="note">{html.escape(headline_note)}</p>',
@@ -120,6 +131,34 @@ def render_report(
             for k, v in provenance.items()
         ),
         "</tbody></table>",
+        "</body></html>",
+    ]
+    return "\n".join(parts)
+
+
+def render_summary(
+    *,
+    title: str,
+    subtitle: str,
+    table: pd.DataFrame,
+    figure_png: bytes,
+    figure_caption: str,
+    reports: Mapping[str, str],
+) -> str:
+    """The page comparing runs (`cvslam summary`), self-contained like the report: the
+    table, one figure, and a link to each run's report (`reports`: run -> relative URL)."""
+    links = "".join(
+        f'<li><a href="{html.escape(url)}">{html.escape(run)}</a></li>'
+        for run, url in reports.items()
+    )
+    parts = [
+        *_page_start(title, subtitle),
+        "<h2>Runs</h2>",
+        _table(table),
+        f"<figure>{_png_tag(figure_png, title)}"
+        f"<figcaption>{html.escape(figure_caption)}</figcaption></figure>",
+        "<h2>Reports</h2>",
+        f"<ul>{links}</ul>",
         "</body></html>",
     ]
     return "\n".join(parts)

@@ -203,9 +203,13 @@ def _estimates(runs: list[FuseFolder], vehicles: list[str]) -> list[_Estimate]:
 # --------------------------------------------------------------------------- metrics
 
 
+# the position NEES of one estimate over time: (stamps_ns, NEES, degrees of freedom)
+_Nees = tuple[np.ndarray, np.ndarray, int]
+
+
 def _metrics(
     e: _Estimate, truth: PoseTable, cfg: EvalConfig
-) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray] | None]:
+) -> tuple[dict[str, Any], _Nees | None]:
     """One row of metrics.csv: ATE statistics, RPE per distance (as % of the distance, KITTI
     style, pairs chosen on the true path), final drift, position NEES; and the NEES over
     time (estimate stamps_ns, NEES) where the estimate has covariances."""
@@ -247,23 +251,31 @@ def _metrics(
     row["rpe_drift_pct"] = drift.average_pct
     if e.cov is None:
         return row, None
+    cov = e.cov[a.est_idx, :3, :3]
+    # the axes the filter estimates: a ground robot (3-DOF) has no height uncertainty, and
+    # its NEES is that of the horizontal position (2 dof)
+    axes = [k for k in range(3) if np.all(cov[:, k, k] > 0)]
     nees = mtr.nees_position(
-        truth.p_nav_m[a.ref_idx], e.table.p_nav_m[a.est_idx], e.cov[a.est_idx, :3, :3]
+        truth.p_nav_m[a.ref_idx][:, axes],
+        e.table.p_nav_m[a.est_idx][:, axes],
+        cov[:, axes][:, :, axes],
     )
-    lo, hi = _nees_band(cfg)
+    lo, hi = _nees_band(cfg, len(axes))
     row["nees_mean"] = float(np.mean(nees))
     row["nees_in_band"] = float(np.mean((nees >= lo) & (nees <= hi)))
-    return row, (e.table.stamps_ns[a.est_idx], nees)
+    row["nees_dof"] = len(axes)
+    return row, (e.table.stamps_ns[a.est_idx], nees, len(axes))
 
 
-def _nees_band(cfg: EvalConfig) -> tuple[float, float]:
-    """The band one run's position NEES (3 dof) lies in with the configured probability."""
-    return mtr.nees_chi2_band(3, 1, cfg.nees_band_probability)
+def _nees_band(cfg: EvalConfig, dof: int) -> tuple[float, float]:
+    """The band one run's position NEES (`dof` axes) lies in with the configured
+    probability."""
+    return mtr.nees_chi2_band(dof, 1, cfg.nees_band_probability)
 
 
 def _all_metrics(
     estimates: list[_Estimate], truth: dict[str, PoseTable], truth_source: str, cfg: EvalConfig
-) -> tuple[list[dict[str, Any]], dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]]:
+) -> tuple[list[dict[str, Any]], dict[tuple[str, str], _Nees]]:
     """(one metrics row per estimate, the NEES over time per (run, vehicle) that has one)."""
     rows = []
     nees_of = {}
@@ -408,28 +420,29 @@ def _comparison_figures(
 
 
 def _nees_figure(
-    nees_of: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]],
+    nees_of: dict[tuple[str, str], _Nees],
     vehicles: list[str],
     main_run: str | None,
     t0_ns: int,
     cfg: EvalConfig,
 ) -> Iterator[_Figure]:
     main_nees = {v: nees_of[(main_run, v)] for v in vehicles if (main_run, v) in nees_of}
-    nees_t = {v: (st - t0_ns) * 1e-9 for v, (st, _) in main_nees.items()}
-    nees = {v: n for v, (_, n) in main_nees.items()}
+    nees_t = {v: (st - t0_ns) * 1e-9 for v, (st, _, _) in main_nees.items()}
+    nees = {v: n for v, (_, n, _) in main_nees.items()}
     if nees:
+        dof = max(d for _, _, d in main_nees.values())  # 2 for a team of ground robots
         yield (
             figs.nees_over_time(
                 nees_t,
                 nees,
-                _nees_band(cfg),
-                3,
+                _nees_band(cfg, dof),
+                dof,
             ),
             "nees",
             "Position NEES over time",
             "Normalised estimation error squared of each vehicle's position "
             f"({RUN_LABELS[main_run]}) and the {100 * cfg.nees_band_probability:.0f} % "
-            "chi-square band (3 dof): a consistent filter stays inside it.",
+            f"chi-square band ({dof} dof): a consistent filter stays inside it.",
         )
 
 
@@ -462,7 +475,7 @@ def _figures(
     estimates: list[_Estimate],
     truth: dict[str, PoseTable],
     headline: pd.DataFrame,
-    nees_of: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]],
+    nees_of: dict[tuple[str, str], _Nees],
     cfg: EvalConfig,
 ) -> list[FigureEntry]:
     """Every figure of the report, each written as soon as it is made (one in memory)."""
@@ -494,8 +507,7 @@ def _provenance(
 ) -> dict[str, str]:
     """Where the report's data came from: the truth's files, the stages that made the
     estimates and mosaics."""
-    layout = RunLayout(rd.path)
-    inputs = layout.relative_inputs([input_record(p) for p in truth_files])
+    inputs = [input_record(p, rd.path) for p in truth_files]  # relative to the run
     provenance = {  # paths relative to the run: the report is the same wherever the run is
         "ground truth": truth_source,
         "cvslam version": __version__,
@@ -584,7 +596,7 @@ def run(
     out = layout.eval
     outputs = [out.metrics_json, out.metrics_csv, out.headline_csv, out.report_html]
     inputs = [*truth_files, *est_files, *layout.mosaic().pngs()]
-    plan = rd.plan(EVAL, cfg, ("eval",), inputs, outputs, force)
+    plan = rd.plan(EVAL, cfg, ("eval", "run.dataset"), inputs, outputs, force)
     if plan.action == "skip":
         log.info("eval: %s is up to date (same config and inputs); --force to redo it", out.path)
         old = pd.read_csv(out.headline_csv, index_col=0)
@@ -592,6 +604,9 @@ def run(
     check_writable(outputs)  # before the work: a read-only folder, a name too long
     estimates = [e for e in _estimates(runs, vehicles) if e.vehicle in truth]
     rows, nees_of = _all_metrics(estimates, truth, truth_source, cfg.eval)
+    # which run and dataset each row is of, for tables across runs (`cvslam summary`)
+    dataset = cfg.run.dataset or run_dir.resolve().name
+    rows = [{"dataset": dataset, "run_dir": run_dir.resolve().name, **r} for r in rows]
     metrics = pd.DataFrame(rows)
     headline = _headline(metrics)
 

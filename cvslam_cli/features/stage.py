@@ -234,9 +234,15 @@ class _Extracted:
 
 
 def _extract(
-    logs: LogSet, rigs: dict[str, StereoRig], cfg: ExtractConfig, workers: int, progress: bool
+    logs: LogSet,
+    rigs: dict[str, StereoRig],
+    cfg: ExtractConfig,
+    workers: int,
+    progress: bool,
+    scheduler: str | None = None,
 ) -> _Extracted:
-    """Every stereo frame of the vehicles of `rigs`, in parallel, collected in time order."""
+    """Every stereo frame of the vehicles of `rigs`, in parallel (worker processes, or
+    chunks of frames on the Dask cluster at `scheduler`), collected in time order."""
     vehicles = list(rigs)
     builders = {v: FeatureSetBuilder(v, rig_calibration(rigs[v])) for v in vehicles}
     rows: dict[str, list[dict[str, Any]]] = {v: [] for v in vehicles}
@@ -246,13 +252,18 @@ def _extract(
     with tqdm(
         total=total, desc="extract", unit="pair", disable=None if progress else True, leave=False
     ) as bar:
-        for vehicle, stamp, (left, right, matches, stats) in ordered_map(
-            _job,
-            _frames(logs, vehicles),
-            workers=workers,
-            state={"rigs": rigs, "cfg": cfg},
-            describe=_describe_job,
-        ):
+        state = {"rigs": rigs, "cfg": cfg}
+        if scheduler:
+            from cvslam_cli.cluster import ordered_chunk_map
+
+            results = ordered_chunk_map(
+                _job, _frames(logs, vehicles), scheduler=scheduler, state=state
+            )
+        else:
+            results = ordered_map(
+                _job, _frames(logs, vehicles), workers=workers, state=state, describe=_describe_job
+            )
+        for vehicle, stamp, (left, right, matches, stats) in results:
             builders[vehicle].add_frame(stamp, left, right, matches)
             rows[vehicle].append({"stamp_ns": stamp, **stats})
             started[vehicle] += stats["t_total_s"]
@@ -286,7 +297,11 @@ def run(
     workers: int = 2,
     force: bool = False,
     progress: bool = False,
+    scheduler: str | None = None,
 ) -> ExtractSummary:
+    """Extract every stereo frame of `log_paths` into `run_dir`; `scheduler`: the address of
+    a Dask scheduler to spread the frames over instead of `workers` local processes (the
+    output is the same, byte for byte)."""
     rd = RunDir(run_dir)
     layout = RunLayout(run_dir)
     logs = open_logs(log_paths, cfg.logs)
@@ -300,7 +315,7 @@ def run(
     check_writable(outputs)  # before the work: a read-only folder, a name too long
     rigs = {v: logs.rig(v) for v in vehicles}
     _log_stereo_limits(rigs, cfg.extract)
-    done = _extract(logs, rigs, cfg.extract, workers, progress)
+    done = _extract(logs, rigs, cfg.extract, workers, progress, scheduler)
     for v in vehicles:
         if not done.rows[v]:
             vs = logs.stats[v]

@@ -3,6 +3,7 @@ stage finds its inputs there. No other module spells these names.
 
 ```
 <run>/run.yaml                          RunLayout.run_file (stage records, `io/rundir.py`)
+<run>/.lock, <run>/cvslam.log           RunLayout.lock_file, log_file (`RunDir.session`)
 <run>/features/<v>.npz, <v>_stats.csv   RunLayout.feature_file, feature_stats
 <run>/features/extract.config.yaml      RunLayout.extract_config
 <run>/fuse*/                            FuseFolder (fuse, fuse_single, fuse_ekf, fuse_ekf_single)
@@ -28,6 +29,8 @@ from typing import Any
 from cvslam_cli.errors import CvslamError
 
 RUN_FILE = "run.yaml"
+LOCK_FILE = ".lock"  # held by the one process working on the run directory
+LOG_FILE = "cvslam.log"  # the log lines of every command run on the directory, appended
 FEATURES = "features"
 EXTRACT_STAGE = "extract"
 TRUTH = "truth"
@@ -191,6 +194,14 @@ class RunLayout:
         return self.root / RUN_FILE
 
     @property
+    def lock_file(self) -> Path:
+        return self.root / LOCK_FILE
+
+    @property
+    def log_file(self) -> Path:
+        return self.root / LOG_FILE
+
+    @property
     def features_dir(self) -> Path:
         return self.root / FEATURES
 
@@ -237,6 +248,12 @@ class RunLayout:
             {**r, "path": os.path.relpath((self.root / r["path"]).resolve(), root)} for r in records
         ]
 
+    def recorded_path(self, recorded: str) -> Path:
+        """A path as `io/rundir.py` records it (relative to the run directory; absolute in
+        older runs), usable from here."""
+        p = Path(recorded)
+        return p if p.is_absolute() else Path(os.path.normpath(self.root / p))
+
     def find_logs(self, metas: Sequence[dict[str, Any]]) -> list[Path]:
         """The logs the features were made from: the feature files' recorded inputs (their
         `metas`, from extract), else the logs beside `features/` (a simulator output
@@ -244,7 +261,7 @@ class RunLayout:
         paths: list[Path] = []
         for meta in metas:
             for rec in meta.get("inputs", []):
-                p = self.root / rec["path"]  # relative to the run (absolute in older files)
+                p = self.recorded_path(rec["path"])
                 if p not in paths:
                     paths.append(p)
         if not paths:

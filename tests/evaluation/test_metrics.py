@@ -333,6 +333,14 @@ def test_nees_position_closed_form_and_band():
     assert np.mean((eps >= lo) & (eps <= hi)) == pytest.approx(0.95, abs=0.015)
     with pytest.raises(ValueError):
         nees_position(ref, est, cov[:2])
+    # the horizontal position of a ground robot: 2 dof, mean 2 when consistent
+    e2 = rng.normal(size=(4000, 2)) * [1.5, 0.5]
+    eps2 = nees_position(
+        np.zeros_like(e2), e2, np.broadcast_to(np.diag([2.25, 0.25]), (4000, 2, 2))
+    )
+    assert np.mean(eps2) == pytest.approx(2.0, abs=0.12)
+    with pytest.raises(ValueError):
+        nees_position(ref[:, :2], est[:, :2], cov)
 
 
 # -- evo on the real files ------------------------------------------------------------------
