@@ -62,14 +62,19 @@ def ordered_map(
     are queued at once, so a long stream of jobs does not pile up in memory. `describe(job)`
     names a job in the error raised when a worker dies."""
     if workers <= 1:
-        saved = dict(STATE)
-        STATE.clear()
-        STATE.update(state)
-        try:
-            yield from map(fn, jobs)
-        finally:
+        # STATE holds `state` only while a job runs, restored before each result is handed
+        # out: a generator left unfinished (or collected late) never changes it under
+        # another ordered_map
+        for job in jobs:
+            saved = dict(STATE)
             STATE.clear()
-            STATE.update(saved)
+            STATE.update(state)
+            try:
+                result = fn(job)
+            finally:
+                STATE.clear()
+                STATE.update(saved)
+            yield result
         return
     ctx = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(dict(state),))
