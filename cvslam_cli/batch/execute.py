@@ -83,7 +83,7 @@ def make_sources(steps: RecipeSteps) -> None:
     done = _sources_done(record)
     for step in steps.sources:
         key = str(step.out.name)
-        # the generated folder as a placeholder: a moved one is still up to date
+        # the generated folder recorded as "{generated}": a moved one is still up to date
         command = " ".join(step.argv).replace(str(steps.generated_dir), "{generated}")
         if done.get(key) == command and _present(step):
             log.info("%s: %s is up to date", steps.recipe.name, step.out)

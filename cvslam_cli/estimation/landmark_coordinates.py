@@ -71,7 +71,7 @@ class Cartesian:
 
     def to_nav(self, params: F64, R_cam_body: F64, t_body_cam: F64) -> tuple[F64, F64]:
         m = np.atleast_2d(params)
-        return m.copy(), np.broadcast_to(np.eye(3), (len(m), 3, 3)).copy()
+        return m, np.broadcast_to(np.eye(3), (len(m), 3, 3))  # identity: a read-only view
 
 
 class AnchoredInverseDepth:

@@ -179,9 +179,7 @@ def _cartesian(
     Jx = (J_pose @ pose.J).reshape(3 * k, len(pose.index))  # d m / d x_v, (3k, n_v)
     P_mx = Jx @ st.P[pose.index, :]
     P_mm = P_mx[:, pose.index] @ Jx.T
-    meas = J_pc @ cov_cam_m2 @ J_pc.T  # (k, 3, 3)
-    for j in range(k):
-        P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += meas[j]
+    _add_diagonal_blocks(P_mm, J_pc @ cov_cam_m2 @ J_pc.T)
     return st.add_landmarks(m, P_mm, P_mx)
 
 
@@ -216,7 +214,12 @@ def _anchored(
     P_tx = F @ st.P[rows, :]
     P_tt = P_tx[:, rows] @ F.T
     F_c = T_m @ J_pc
-    meas = F_c @ cov_cam_m2 @ np.swapaxes(F_c, 1, 2)
-    for j in range(k):
-        P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += meas[j]
+    _add_diagonal_blocks(P_tt, F_c @ cov_cam_m2 @ np.swapaxes(F_c, 1, 2))
     return st.add_landmarks(theta, P_tt, P_tx, anchor_key, R_cb, t_bc), anchor_key
+
+
+def _add_diagonal_blocks(P: F64, blocks: F64) -> None:
+    """P (3k, 3k) += block-diagonal of blocks (k, 3, 3), in place: the measurement's part of
+    the new landmarks' covariance."""
+    for j, block in enumerate(blocks):
+        P[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += block

@@ -218,10 +218,14 @@ class JointState:
         self._anchor_key = np.concatenate([self._anchor_key, [key]])
         return key, rows
 
+    def _anchor_index(self, key: int) -> int | None:
+        hit = np.flatnonzero(self._anchor_key == key)
+        return int(hit[0]) if len(hit) else None
+
     def anchor_rows(self, key: int) -> I64 | None:
         """State rows (6,) of the anchor `key`; None once it has left the state."""
-        hit = np.flatnonzero(self._anchor_key == key)
-        return self._anchor_rows[hit[0]] if len(hit) else None
+        index = self._anchor_index(key)
+        return None if index is None else self._anchor_rows[index]
 
     def add_landmarks(
         self,
@@ -237,9 +241,8 @@ class JointState:
         P_px (3k, n); anchored coordinates: the anchor they refer to (its key) and its
         camera's R_cam_body (3, 3) and t_body_cam (3,). Returns their slots (k,)."""
         k = len(params)
-        anchor = (
-            -1 if anchor_key is None else int(np.flatnonzero(self._anchor_key == anchor_key)[0])
-        )
+        index = None if anchor_key is None else self._anchor_index(anchor_key)
+        anchor = -1 if index is None else index
         rows = self._append(np.asarray(params, dtype=float).reshape(-1), P_pp, P_px)
         R = np.eye(3) if R_cam_body is None else np.asarray(R_cam_body, dtype=float)
         t = np.zeros(3) if t_body_cam is None else np.asarray(t_body_cam, dtype=float)
