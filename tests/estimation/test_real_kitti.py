@@ -55,7 +55,8 @@ def test_kitti_runs_with_no_motion_model_setting(kitti_run):
     from cvslam_cli.io.rundir import RunDir
 
     _, run = kitti_run
-    assert "motion" not in yaml.safe_load((REPO / "configs" / "kitti.yaml").read_text())["fuse"]
+    fuse_cfg = yaml.safe_load((REPO / "configs" / "kitti.yaml").read_text())["fuse"]
+    assert "model" not in fuse_cfg.get("motion", {})
     fuse = RunDir(run).load()["stages"]["fuse"]
     assert fuse["config"]["fuse"]["motion"]["model"] == "auto"
     assert fuse["summary"]["vehicles"]["car"]["model"] == "constant_velocity"
@@ -96,8 +97,9 @@ def test_kitti_estimate_follows_ground_truth(kitti_run):
     # The data README: judge clip a after SE3, clip b (calibration and ground truth disagree
     # in scale by 4-5 %) after Sim3 alignment.
     if clip == "a":
-        assert figures["se3"][0] < 0.6
-        assert figures["none"][1] < 4.0  # % of distance travelled
+        # before the car's angular-acceleration noise in configs/kitti.yaml: 0.166 m, 2.9 %
+        assert figures["se3"][0] < 0.15
+        assert figures["none"][1] < 1.5  # % of distance travelled
     else:
-        assert figures["sim3"][0] < 1.0
+        assert figures["sim3"][0] < 0.25  # 0.286 m before configs/kitti.yaml's motion noise
         assert 0.9 < figures["sim3"][2].scale < 1.02
