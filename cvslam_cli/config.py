@@ -285,6 +285,16 @@ class MapConfig:
 
 
 @dataclass(frozen=True)
+class WindowConfig:
+    """The sliding window of pose clones and the feature tracks that update them
+    (estimation/window_update.py)."""
+
+    clones: int = opt(0, lo=0)
+    max_tracks: int = opt(60, lo=1)
+    gate_probability: float = opt(0.95, lo=0.5, hi=1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
 class DivergenceConfig:
     """A vehicle's filter has diverged when its median NIS per measurement over the last
     `window` updated frames exceeds `nis_per_dof_max` (1 is nominal)."""
@@ -301,6 +311,7 @@ class FuseConfig:
     initial: InitialConfig = opt(InitialConfig())
     association: AssociationConfig = opt(AssociationConfig())
     map: MapConfig = opt(MapConfig())
+    window: WindowConfig = opt(WindowConfig())
     divergence: DivergenceConfig = opt(DivergenceConfig())
 
 

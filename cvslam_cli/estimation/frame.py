@@ -60,6 +60,18 @@ class FrameMatches:
         return len(self.z)
 
 
+@dataclass(frozen=True)
+class WindowOutcome:
+    """One frame's sliding-window step: tracks continued / ended and used / gated out, and
+    the update's NIS and degrees of freedom (nan / 0 without an update)."""
+
+    continued: int = 0
+    used: int = 0
+    rejected: int = 0
+    nis: float = float("nan")
+    dof: int = 0
+
+
 @dataclass(eq=False)
 class FrameOutcome:
     """What one frame did. types (M,): each match's feature type (`association.classify`;
@@ -78,3 +90,5 @@ class FrameOutcome:
     dof: int = 0
     gamma: float = float("nan")
     gamma_raised: bool = False
+    new_rows: I64 = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    window: WindowOutcome = field(default_factory=WindowOutcome)

@@ -119,15 +119,15 @@ class NewLandmarks:
         priority: F64,
         protected: I64,
         want: int,
-    ) -> I64:
+    ) -> tuple[I64, I64]:
         """Initialise up to `want` of the matches `cand` (confirmed candidates) as landmarks,
         evicting landmarks (never `protected`) when the state is full; `runs`: every
-        vehicle's, in vehicle order. Returns their slots."""
+        vehicle's, in vehicle order. Returns their slots and the frame rows they came from."""
         size = tuple(run.vin.features.rig.size_px[0])
         pick = cand[spread_order(frame.z[cand, :2], priority, size)[:want]]
         pick = self._make_room(run, runs, protected, pick)
         if len(pick) == 0:
-            return np.zeros(0, dtype=np.int64)
+            return np.zeros(0, dtype=np.int64), pick
         vin = run.vin
         pose = VehiclePose.of(self.state, vin)
         p_cam, cov_cam = frame.p_cam_m[pick], frame.cov_cam_m2[pick]
@@ -146,7 +146,7 @@ class NewLandmarks:
             frame.true_id[pick],
             view_directions(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots)),
         )
-        return slots
+        return slots, pick
 
     def _make_room(self, run: VehicleRun, runs: list[VehicleRun], protected: I64, pick: I64) -> I64:
         """Evict landmarks (in batches of at least a tenth of the bound: fewer copies) when

@@ -10,6 +10,22 @@ from cvslam_cli.estimation.landmark_coordinates import CoordinatesSetting
 
 
 @dataclass(frozen=True)
+class WindowSettings:
+    """window: clones kept per vehicle (0: no window, no tracks); max_tracks: live tracks
+    per vehicle at most (new ones spread over the image); gate_chi2[d]: the
+    chi-square gate of a track's d null-space rows; iterations: Gauss-Newton steps of the
+    point fit; the association's gate, ratio and distance for continuing tracks."""
+
+    window: int = 0
+    max_tracks: int = 60
+    gate_chi2: tuple[float, ...] = ()
+    iterations: int = 2
+    match_gate_chi2: float = 18.47
+    descriptor_ratio: float = 0.8
+    max_descriptor_distance: float = 350.0
+
+
+@dataclass(frozen=True)
 class SlamSettings:
     filter: FilterSettings = field(default_factory=FilterSettings)
     pixel_sigma_px: float = 0.5
@@ -37,6 +53,7 @@ class SlamSettings:
     localise_min_inliers: int = 12
     localise_reprojection_px: float = 2.0
     localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
+    window: WindowSettings = field(default_factory=WindowSettings)
 
 
 def landmark_bound(s: SlamSettings, n_vehicles: int) -> int:

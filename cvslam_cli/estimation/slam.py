@@ -4,7 +4,7 @@ are arrays (motion samples, feature sets), the outputs arrays and row records; t
 stage does the I/O.
 
 Every vehicle's camera frames are processed in timestamp order over all vehicles, as a
-ground station would. A frame of vehicle v at time t (`Slam._frame`) is five steps:
+ground station would. A frame of vehicle v at time t (`Slam._frame`) is six steps:
 
 1. predict (eq. 1-2): v's motion model is run from its last time to t over its motion
    samples (IMU or odometry, zero-order hold, `motion_segments`; one step for the
@@ -23,7 +23,10 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is five ste
    become landmarks, the state kept under its landmark bound by eviction
    (`new_landmarks.py`, `mapping.py`), and other vehicles' simultaneous observations of
    them are used at once (joint initialisation, `cooperation.py`);
-5. record: pose and its covariance, one timeline row, and the divergence check (`events.py`).
+5. window (when `fuse.window.clones` > 0): the pose is cloned and the frame's remaining
+   points continue or start feature tracks; the tracks that end update the clones
+   (`window_update.py`, `tracks.py`: the MSCKF's use of the points never mapped);
+6. record: pose and its covariance, one timeline row, and the divergence check (`events.py`).
 """
 
 from __future__ import annotations
@@ -62,6 +65,7 @@ from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
+from cvslam_cli.estimation.window_update import SlidingWindow
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.landmarks import LandmarkMap
 
@@ -130,6 +134,14 @@ class Slam:
         self.mapper = NewLandmarks(
             self.state, self.book, settings, landmark_bound(settings, len(vehicles))
         )
+        self.window = (
+            SlidingWindow(
+                self.state, settings.window, settings.filter, self.updater.gamma,
+                self.updater.R_pixel,
+            )
+            if settings.window.window > 0
+            else None
+        )  # fmt: skip
         self.monitor = DivergenceMonitor(self.names, settings.nis_window, settings.nis_per_dof_max)
         self.timeline: list[dict[str, Any]] = []
         self.divergence: Divergence | None = None
@@ -157,7 +169,7 @@ class Slam:
 
     # ------------------------------------------------------------------ one frame
     def _frame(self, run: VehicleRun, t_ns: int, f: int) -> None:
-        """One frame of run's vehicle: the five steps of the module docstring."""
+        """One frame of run's vehicle: the six steps of the module docstring."""
         t_start = time.perf_counter()
         self._predict(run, t_ns)
         frame = FrameMatches.of(run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio)
@@ -172,6 +184,7 @@ class Slam:
         lm_std = self._landmark_sigma(out.updated_slots)
         if not localising:
             self._map(run, frame, out)
+            self._window(run, frame, out)
         self._next_candidates(run, frame, out)
         self._record(run, frame, out, lm_std, t_start)
 
@@ -276,10 +289,27 @@ class Slam:
         confirmed, priority = self.mapper.confirm(run, frame, out.types == TYPE_3)
         if not len(confirmed):
             return
-        slots = self.mapper.add(run, self.runs, frame, confirmed, priority, out.updated_slots, want)
+        slots, out.new_rows = self.mapper.add(
+            run, self.runs, frame, confirmed, priority, out.updated_slots, want
+        )
         if len(slots):
             self.cooperation.joint_initialisation(run, slots, frame.stamp_ns)
         out.type3 = len(slots)
+
+    def _window(self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome) -> None:
+        """Step 5: clone the pose; the matches neither a landmark's observation nor a new
+        landmark continue or start tracks; the tracks that end update the window."""
+        if self.window is None:
+            return
+        free = out.types == TYPE_3
+        import os
+
+        if os.environ.get("TR_CANSTART"):
+            free &= frame.depth_sigma_ratio < float(os.environ["TR_CANSTART"])
+        free[out.new_rows] = False
+        out.window = self.window.step(
+            run.vin, frame, np.flatnonzero(free), self.cooperation.bounded_vehicles()
+        )
 
     def _next_candidates(self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome) -> None:
         """This frame's type-3 matches become the candidates the next frame may confirm
@@ -292,7 +322,7 @@ class Slam:
     def _record(
         self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome, lm_std: float, t_start: float
     ) -> None:
-        """Step 5: the frame's estimate, timeline row and divergence check."""
+        """Step 6: the frame's estimate, timeline row and divergence check."""
         st = self.state
         vin = run.vin
         pose = VehiclePose.of(st, vin)
@@ -330,6 +360,10 @@ class Slam:
                 "nis_dof": out.dof,
                 "gamma": out.gamma,
                 "gamma_raised": out.gamma_raised,
+                "tracks_used": out.window.used,
+                "tracks_rejected": out.window.rejected,
+                "window_nis": out.window.nis,
+                "window_nis_dof": out.window.dof,
                 "x_m": float(p[0]),
                 "y_m": float(p[1]),
                 "z_m": float(p[2]),

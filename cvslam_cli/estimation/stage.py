@@ -42,7 +42,7 @@ from cvslam_cli.estimation.motion.models import (
     odometry_input,
 )
 from cvslam_cli.estimation.observation import StereoObservationModel
-from cvslam_cli.estimation.settings import SlamSettings
+from cvslam_cli.estimation.settings import SlamSettings, WindowSettings
 from cvslam_cli.estimation.slam import (
     Slam,
     SlamResult,
@@ -363,6 +363,18 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         localise_min_inliers=cfg.initial.localise_min_inliers,
         localise_reprojection_px=cfg.initial.localise_reprojection_px,
         localise_prior_chi2=float(chi2.ppf(cfg.initial.localise_prior_probability, 3)),
+        window=WindowSettings(
+            window=cfg.window.clones,
+            max_tracks=cfg.window.max_tracks,
+            # a track of L observations (L <= clones + 1) gives 4 L - 3 rows
+            gate_chi2=tuple(
+                float(chi2.ppf(cfg.window.gate_probability, max(d, 1)))
+                for d in range(4 * cfg.window.clones + 2)
+            ),
+            match_gate_chi2=float(chi2.ppf(a.gate_probability, 4)),
+            descriptor_ratio=a.descriptor_ratio,
+            max_descriptor_distance=a.max_descriptor_distance,
+        ),
     )
 
 

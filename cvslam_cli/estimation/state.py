@@ -69,6 +69,7 @@ class JointState:
         self._t_body_cam = np.zeros((0, 3))
         self._anchor_rows = np.zeros((0, 6), dtype=np.int64)
         self._anchor_key = np.zeros(0, dtype=np.int64)  # stable names of the anchors
+        self._anchor_pinned = np.zeros(0, dtype=bool)  # kept even with no landmark on it
         self._next_anchor_key = 0
         self.vehicles: dict[str, VehicleBlock] = {}
         start = 0
@@ -207,16 +208,26 @@ class JointState:
         self._n = n + r
         return np.arange(n, n + r)
 
-    def add_anchor(self, x_a: F64, P_aa: F64, P_ax: F64) -> tuple[int, I64]:
+    def add_anchor(self, x_a: F64, P_aa: F64, P_ax: F64, pinned: bool = False) -> tuple[int, I64]:
         """Append an anchor clone: a pose (p, Psi) x_a (6,), its covariance P_aa (6, 6) and
         cross-covariance with the current state P_ax (6, n). Returns its key (a name that
-        stays valid while the anchor is in the state; `anchor_rows`) and its rows (6,)."""
+        stays valid while the anchor is in the state; `anchor_rows`) and its rows (6,). An
+        unpinned anchor leaves with its last landmark; a pinned one (a clone of the track
+        window, `tracks.py`) stays until `release_anchor`."""
         key = self._next_anchor_key
         self._next_anchor_key += 1
         rows = self._append(np.asarray(x_a, dtype=float), P_aa, P_ax)
         self._anchor_rows = np.concatenate([self._anchor_rows, rows[None]])
         self._anchor_key = np.concatenate([self._anchor_key, [key]])
+        self._anchor_pinned = np.concatenate([self._anchor_pinned, [pinned]])
         return key, rows
+
+    def release_anchor(self, key: int) -> None:
+        """Unpin the anchor `key`: marginalised now unless a landmark still refers to it."""
+        index = self._anchor_index(key)
+        if index is not None:
+            self._anchor_pinned[index] = False
+            self.remove_landmarks(np.zeros(0, dtype=np.int64))
 
     def _anchor_index(self, key: int) -> int | None:
         hit = np.flatnonzero(self._anchor_key == key)
@@ -260,7 +271,7 @@ class JointState:
         keep = np.ones(self.n_landmarks, dtype=bool)
         keep[np.asarray(slots, dtype=np.int64)] = False
         kept = np.flatnonzero(keep)
-        used = np.zeros(self.n_anchors, dtype=bool)
+        used = self._anchor_pinned.copy()
         used[self._anchor_of[kept][self._anchor_of[kept] >= 0]] = True
         keep_rows = np.ones(self.n, dtype=bool)
         keep_rows[self._own_rows[~keep].ravel()] = False
@@ -278,6 +289,7 @@ class JointState:
         self._own_rows = new_row[self._own_rows[kept]]
         self._anchor_rows = new_row[self._anchor_rows[used]]
         self._anchor_key = self._anchor_key[used]
+        self._anchor_pinned = self._anchor_pinned[used]
         self._R_cam_body, self._t_body_cam = self._R_cam_body[kept], self._t_body_cam[kept]
         return kept
 

@@ -43,11 +43,13 @@ def sims(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     return out
 
 
-def _nees(sims: list[Path], config_files: tuple[Path, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _nees(
+    sims: list[Path], config_files: tuple[Path, ...], overrides: tuple[str, ...] = ()
+) -> tuple[np.ndarray, np.ndarray]:
     """Per frame (after the first), the mean over runs of e^T P^-1 e for the 3-D position
     error against the truth (the filter's 3x3 position covariance) and for the attitude
     error (Euler angles, their 3x3 covariance), EKF: two (frames,) arrays."""
-    cfg = load_config(config_files, list(MC_FILTER_OVERRIDES))
+    cfg = load_config(config_files, [*MC_FILTER_OVERRIDES, *overrides])
     pos, att = [], []
     for d in sims:
         fs = {"uav1": load_features(d / "features" / "uav1.npz")[0]}
@@ -92,3 +94,15 @@ def test_default_filter_is_consistent_and_the_papers_is_not(sims):
     assert _in_band(p) > 0.6 and _in_band(a) > 0.6
     # the paper's filter claims several times more than it knows
     assert p_paper.mean() > 2 * p.mean() and a_paper.mean() > 1.5 * a.mean()
+
+
+def test_the_sliding_window_stays_consistent(sims):
+    """The feature tracks' update of the pose clones (`window_update.py`) adds information
+    without claiming more than it has."""
+    p, a = _nees(sims, (), ("fuse.window.clones=3",))
+    print(
+        f"\nwindow of 3 clones: mean NEES position {p.mean():.2f} ({_in_band(p):.0%} in band), "
+        f"attitude {a.mean():.2f} ({_in_band(a):.0%})"
+    )
+    assert 1.5 < p.mean() < 4.5 and 1.5 < a.mean() < 4.5
+    assert _in_band(p) > 0.6 and _in_band(a) > 0.6
