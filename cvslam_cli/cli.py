@@ -30,8 +30,17 @@ log = logging.getLogger("cvslam")
 
 
 class _OneLineFormatter(logging.Formatter):
+    """`cvslam: [level: ]message`; `detailed` (-vv): also the seconds since start and the
+    logger (which stage or library said it)."""
+
+    def __init__(self, detailed: bool = False) -> None:
+        super().__init__()
+        self.detailed = detailed
+
     def format(self, record: logging.LogRecord) -> str:
         prefix = "" if record.levelno == logging.INFO else f"{record.levelname.lower()}: "
+        if self.detailed:
+            prefix = f"[{record.relativeCreated / 1000:8.3f} s {record.name}] {prefix}"
         return f"cvslam: {prefix}{record.getMessage()}"
 
 
@@ -40,14 +49,21 @@ class _TerminalHandler(logging.StreamHandler):
 
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
+    """The `cvslam` logger's level and terminal handler: INFO; -v DEBUG; -vv DEBUG with
+    times and logger names, and the libraries' (root logger's) INFO messages; -q WARNING."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
     handler = _TerminalHandler(sys.stderr)
-    handler.setFormatter(_OneLineFormatter())
+    handler.setFormatter(_OneLineFormatter(detailed=verbose >= 2 and not quiet))
     # replace the terminal handler of an earlier call, keep others (a run's log file)
     log.handlers[:] = [h for h in log.handlers if not isinstance(h, _TerminalHandler)]
     log.addHandler(handler)
     log.setLevel(level)
     log.propagate = False
+    root = logging.getLogger()
+    root.handlers[:] = [h for h in root.handlers if not isinstance(h, _TerminalHandler)]
+    if verbose >= 2 and not quiet:
+        root.addHandler(handler)
+        root.setLevel(logging.INFO)
 
 
 def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -148,13 +164,71 @@ def write_resolved_config(cfg: Config, path: Path) -> Path:
     return path
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+# ----------------------------------------------------------------------------- global options
+
+_VERBOSITY = "cvslam.verbosity"  # key in the root context's meta: the counts of -v and -q
+
+
+def _on_global_option(ctx: click.Context, param: click.Parameter, value: Any) -> None:
+    """Add one command's -v count (or -q) to the whole command line's and set up the logging:
+    `cvslam -v fuse RUN -v` is -vv."""
+    seen = ctx.find_root().meta.setdefault(_VERBOSITY, {"verbose": 0, "quiet": False})
+    if param.name == "verbose":
+        seen["verbose"] += value
+    else:
+        seen["quiet"] = seen["quiet"] or bool(value)
+    _setup_logging(seen["verbose"], seen["quiet"])
+
+
+def _global_options() -> list[click.Option]:
+    """Fresh -v/-q options (one set per command): `-v` debug lines saying what each stage
+    chose and why, `-vv` also those of the libraries; `-q` only warnings and errors."""
+    common: dict[str, Any] = {"expose_value": False, "callback": _on_global_option}
+    return [
+        click.Option(
+            ["-v", "--verbose"],
+            count=True,
+            help="More output: -v what each stage chose and why, -vv also the libraries' "
+            "debug messages (anywhere on the command line).",
+            **common,
+        ),
+        click.Option(["-q", "--quiet"], is_flag=True, help="Only warnings and errors.", **common),
+    ]
+
+
+def _add_global_options(cmd: click.Command) -> None:
+    """Give `cmd` (and the commands of a plain click group it is) the global options."""
+    if not any(p.name == "verbose" for p in cmd.params):
+        cmd.params.extend(_global_options())
+    if isinstance(cmd, click.Group) and not isinstance(cmd, CvslamGroup):
+        for sub in cmd.commands.values():
+            _add_global_options(sub)
+
+
+class CvslamGroup(click.Group):
+    """A click group whose every command takes the global options (-v, -q) wherever they
+    are on the command line: they are added to each command as it is added to the group
+    (`@cli.command()`, `@cli.group()`, `cli.add_command(...)`), so a new command has them
+    without doing anything. Subgroups made with `@group.group()` are CvslamGroups too."""
+
+    group_class = type
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        _add_global_options(self)
+
+    def add_command(self, cmd: click.Command, name: str | None = None) -> None:
+        _add_global_options(cmd)
+        super().add_command(cmd, name)
+
+
+@click.group(cls=CvslamGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="cvslam")
-@click.option("-v", "--verbose", count=True, help="More output (debug messages).")
-@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
-def cli(verbose: int, quiet: bool) -> None:
-    """Cooperative stereo visual SLAM from ROS 2 and ROS 1 bags (no ROS install needed)."""
-    _setup_logging(verbose, quiet)
+def cli() -> None:
+    """Cooperative stereo visual SLAM from ROS 2 and ROS 1 bags (no ROS install needed).
+
+    -v / -q are accepted before or after any command.
+    """
 
 
 # ----------------------------------------------------------------------------- info
@@ -708,7 +782,14 @@ def do_eval(
     from cvslam_cli.evaluation.stage import headline_text, run
 
     with run_session(run_dir, "eval"):
-        summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+        summary = run(
+            cfg,
+            run_dir,
+            gt=gt,
+            log_paths=log_paths,
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
     # labelled, so that tables of runs made in parallel (make -j) say which run they are of
     click.echo(f"{run_dir}:\n{headline_text(summary.headline)}")
     log.info("report: %s", EvalFolder(summary.out_dir).report_html)
