@@ -21,7 +21,7 @@ import click
 
 from cvslam_cli import __version__
 from cvslam_cli.batch.commands import COMMANDS as BATCH_COMMANDS
-from cvslam_cli.config import Config, dump_config, load_config
+from cvslam_cli.config import Config, config_from_sources, config_sources, dump_config
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.run_layout import EvalFolder, FuseFolder, RunLayout, resolved_config_beside
@@ -67,8 +67,20 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 
 def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """Add `--config FILE` (repeatable) and `--set key.path=value` (repeatable); the
-    command receives the resolved `cfg: Config`."""
+    """Add `--config FILE` (repeatable), `--calib` and `--set key.path=value` (repeatable);
+    the command receives the resolved `cfg: Config`."""
+
+    @config_source_options
+    @functools.wraps(func)
+    def wrapper(*args: Any, sources: Sequence[tuple[str, dict[str, Any]]], **kwargs: Any) -> Any:
+        return func(*args, cfg=config_from_sources(sources), **kwargs)
+
+    return wrapper
+
+
+def config_source_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """The options of `config_options`; the command receives the config's `sources` (name,
+    mapping), lowest precedence first (`config.config_sources`)."""
 
     @click.option(
         "--config",
@@ -76,7 +88,8 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
         multiple=True,
         metavar="FILE",
         type=click.Path(dir_okay=False, path_type=Path),
-        help="YAML config file (repeatable; later files override earlier ones).",
+        help="YAML config file, or the name of a shipped one (kitti, paper) (repeatable; "
+        "later files override earlier ones).",
     )
     @click.option(
         "--set",
@@ -101,8 +114,8 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
         calibs: Sequence[str],
         **kwargs: Any,
     ) -> Any:
-        cfg = load_config(config_files, overrides, [_calib_layer(c) for c in calibs])
-        return func(*args, cfg=cfg, **kwargs)
+        layers = [_calib_layer(c) for c in calibs]
+        return func(*args, sources=config_sources(config_files, overrides, layers), **kwargs)
 
     return wrapper
 
@@ -850,6 +863,56 @@ def do_run(
         log.warning(
             "eval skipped: the logs have no ground truth (give it with --gt FILE to evaluate)"
         )
+
+
+# ----------------------------------------------------------------------------- config
+
+
+@cli.group("config")
+def config_group() -> None:
+    """The configuration: every key with its value, comment and source; check a file."""
+
+
+@config_group.command("show")
+@click.argument("key", required=False)
+@config_source_options
+def config_show(key: str | None, sources: Sequence[tuple[str, dict[str, Any]]]) -> None:
+    """Print the resolved config (defaults, then --config files, --calib, --set) as YAML,
+    each key with its comment from configs/default.yaml and each value with its source
+    (default, file PATH, --set ...). KEY: only the keys at or below this dotted prefix,
+    e.g. `fuse.hinf`. The output loads as the same config (--config)."""
+    from cvslam_cli.config import DEFAULT_CONFIG_PATH, nearest_key, to_dict, value_sources
+    from cvslam_cli.config_show import key_comments, key_paths, render_config
+
+    data = to_dict(config_from_sources(sources))
+    if key is not None and key not in key_paths(data):
+        near = nearest_key(key, key_paths(data))
+        raise CvslamError(
+            f"config show {key}: no such key"
+            + (f" (did you mean {near}?)" if near else " (see `cvslam config show`)")
+        )
+    comments = key_comments(DEFAULT_CONFIG_PATH.read_text(encoding="utf-8"))
+    click.echo(render_config(data, comments, value_sources(sources), key), nl=False)
+
+
+@config_group.command("check")
+@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
+def config_check(file: Path) -> None:
+    """Check the config FILE: one line per problem (an unknown key with the nearest valid
+    one, a wrong type or range), exit 1; "ok" and exit 0 when it has none."""
+    from cvslam_cli.config import CONFIG_FILE, config_problems, resolve_config_path
+    from cvslam_cli.errors import ConfigError
+    from cvslam_cli.io.textfiles import read_yaml_mapping
+
+    path = resolve_config_path(file)
+    problems = config_problems(
+        read_yaml_mapping(path, CONFIG_FILE, ConfigError, empty_ok=True), str(path)
+    )
+    for problem in problems:
+        click.echo(f"cvslam: error: {problem}", err=True)
+    if problems:
+        click.get_current_context().exit(1)
+    click.echo(f"{path}: ok")
 
 
 # ----------------------------------------------------------------------------- many runs
