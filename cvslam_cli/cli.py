@@ -873,8 +873,15 @@ def config_group() -> None:
     """The configuration: every key with its value, comment and source; check a file."""
 
 
+def _complete_config_key(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
+    """Shell completion of a config key path (docs/cli.md)."""
+    from cvslam_cli.config import schema_keys
+
+    return [k for k in schema_keys() if k.startswith(incomplete)]
+
+
 @config_group.command("show")
-@click.argument("key", required=False)
+@click.argument("key", required=False, shell_complete=_complete_config_key)
 @config_source_options
 def config_show(key: str | None, sources: Sequence[tuple[str, dict[str, Any]]]) -> None:
     """Print the resolved config (defaults, then --config files, --calib, --set) as YAML,

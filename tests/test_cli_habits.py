@@ -286,3 +286,26 @@ def test_ctrl_c_while_the_command_line_loads_is_one_line(monkeypatch, capsys):
         main()
     assert exc.value.code == 130 and capsys.readouterr().err == "cvslam: interrupted\n"
     assert 'cvslam = "cvslam_cli.__main__:main"' in (REPO / "pyproject.toml").read_text()
+
+
+# --------------------------------------------------------------------------- completion
+
+
+def test_shell_completion_as_documented():
+    from click.shell_completion import ShellComplete
+
+    complete = ShellComplete(cli, {}, "cvslam", "_CVSLAM_COMPLETE")
+    assert "config" in [c.value for c in complete.get_completions([], "con")]
+    keys = [c.value for c in complete.get_completions(["config", "show"], "fuse.hinf.g")]
+    assert keys == ["fuse.hinf.gamma", "fuse.hinf.gamma_margin"]
+    options = [c.value for c in complete.get_completions(["fuse", "run1"], "--verb")]
+    assert options == ["--verbose"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "cvslam_cli"],
+        env={**os.environ, "_CVSLAM_COMPLETE": "bash_source"},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 0 and "_cvslam_completion()" in proc.stdout
+    assert "_CVSLAM_COMPLETE=bash_source cvslam" in (REPO / "docs" / "cli.md").read_text()
