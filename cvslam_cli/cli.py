@@ -50,7 +50,7 @@ class _TerminalHandler(logging.StreamHandler):
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
     """The `cvslam` logger's level and terminal handler: INFO; -v DEBUG; -vv DEBUG with
-    times and logger names, and the libraries' (root logger's) INFO messages; -q WARNING."""
+    the seconds since start and the logger's name on each line; -q WARNING."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
     handler = _TerminalHandler(sys.stderr)
     handler.setFormatter(_OneLineFormatter(detailed=verbose >= 2 and not quiet))
@@ -59,11 +59,6 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
     log.addHandler(handler)
     log.setLevel(level)
     log.propagate = False
-    root = logging.getLogger()
-    root.handlers[:] = [h for h in root.handlers if not isinstance(h, _TerminalHandler)]
-    if verbose >= 2 and not quiet:
-        root.addHandler(handler)
-        root.setLevel(logging.INFO)
 
 
 def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -195,14 +190,14 @@ def _on_global_option(ctx: click.Context, param: click.Parameter, value: Any) ->
 
 def _global_options() -> list[click.Option]:
     """Fresh -v/-q options (one set per command): `-v` debug lines saying what each stage
-    chose and why, `-vv` also those of the libraries; `-q` only warnings and errors."""
+    chose and why, `-vv` with times and logger names; `-q` only warnings and errors."""
     common: dict[str, Any] = {"expose_value": False, "callback": _on_global_option}
     return [
         click.Option(
             ["-v", "--verbose"],
             count=True,
-            help="More output: -v what each stage chose and why, -vv also the libraries' "
-            "debug messages (anywhere on the command line).",
+            help="More output: -v what each stage chose and why, -vv with times and the "
+            "logger of each line (anywhere on the command line).",
             **common,
         ),
         click.Option(["-q", "--quiet"], is_flag=True, help="Only warnings and errors.", **common),
