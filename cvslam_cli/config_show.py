@@ -22,8 +22,9 @@ VEHICLE_DEFAULTS = "logs.vehicle_defaults"
 
 def key_comments(text: str) -> dict[str, list[str]]:
     """The comment lines above each key of a commented YAML text, by dotted key path. A
-    comment also applies to the keys after it at the same level and under the same parent
-    that have none of their own; a blank line ends a comment (the file's header)."""
+    value's comment also applies to the values after it at the same level and under the
+    same parent that have none of their own (a section, `key:` with a block below, has only
+    its own and ends that); a blank line ends a comment (the file's header)."""
     comments: dict[str, list[str]] = {}
     stack: list[tuple[int, str]] = []  # (indent, key) of the enclosing keys
     carried: dict[tuple[int, str], list[str]] = {}  # (indent, parent) -> last comment there
@@ -34,7 +35,7 @@ def key_comments(text: str) -> dict[str, list[str]]:
             pending = []
             continue
         if stripped.startswith("#"):
-            pending.append(stripped[1:].strip())
+            pending.append(stripped[1:].removeprefix(" "))  # an example's indent kept
             continue
         m = _KEY_RE.match(line)
         if not m:  # a list item or a continued value
@@ -45,10 +46,16 @@ def key_comments(text: str) -> dict[str, list[str]]:
             stack.pop()
         parent = ".".join(k for _, k in stack)
         path = f"{parent}.{m.group(2)}" if parent else m.group(2)
-        if pending:
-            carried[(indent, parent)] = pending
-        if (indent, parent) in carried:
-            comments[path] = carried[(indent, parent)]
+        section = not line[m.end() :].split("#", 1)[0].strip()  # `key:` with a block below
+        if section:  # only its own comment, and none carried past it
+            carried.pop((indent, parent), None)
+            if pending:
+                comments[path] = pending
+        else:
+            if pending:
+                carried[(indent, parent)] = pending
+            if (indent, parent) in carried:
+                comments[path] = carried[(indent, parent)]
         pending = []
         stack.append((indent, m.group(2)))
     return comments

@@ -156,6 +156,8 @@ def test_default_yaml_has_a_comment_for_every_key_config_show_prints():
         comments["logs.vehicle_defaults.rig.left.height"]
         == comments["logs.vehicle_defaults.rig.left.width"]
     )  # one comment for a group of keys
+    assert "logs.vehicle_defaults.rig.left" not in comments  # a section has only its own
+    assert comments["logs.vehicle_defaults.rig.right.fx"] == ["Same keys as left."]
     assert "logs" not in comments  # the file's header (then a blank line) is no key's
 
 
