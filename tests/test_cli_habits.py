@@ -246,10 +246,16 @@ def test_eval_shows_progress_on_a_terminal_and_debug_lines_with_v(cvslam, landma
 # --------------------------------------------------------------------------- Ctrl-C
 
 
-@pytest.mark.parametrize("delay_s", [0.0, 0.4, 3.0])  # as the workers start; as they work
-def test_ctrl_c_with_workers_exits_130_with_one_line(tmp_path, delay_s):
-    synth = write_stereo_log(tmp_path / "a.mcap", n_frames=300, size=(320, 240), fx=200.0)
-    args = ["extract", synth.path, "-o", tmp_path / "r", "--workers", "2", "-v"]
+@pytest.fixture(scope="module")
+def long_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """600 stereo pairs: ~5 s of work for 2 workers on an idle machine (15 ms per frame)."""
+    path = tmp_path_factory.mktemp("ctrl_c") / "a.mcap"
+    return write_stereo_log(path, n_frames=600, size=(320, 240), fx=200.0).path
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 2.0])  # as the workers start; as they work
+def test_ctrl_c_with_workers_exits_130_with_one_line(tmp_path, long_log, delay_s):
+    args = ["extract", long_log, "-o", tmp_path / "r", "--workers", "2", "-v"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "cvslam_cli", *map(str, args)],
         stdout=subprocess.DEVNULL,
