@@ -384,6 +384,63 @@ def import_kalibr_cmd(camchain: Path, output: Path, vehicle: str | None) -> None
     log.info("wrote %s (use it with --config %s)", output, output)
 
 
+# ----------------------------------------------------------------------------- config
+
+
+@cli.group("config")
+def config_group() -> None:
+    """The configuration: every key with its value, comment and source; check a file."""
+
+
+def _complete_config_key(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
+    """Shell completion of a config key path (docs/cli.md)."""
+    from cvslam_cli.config import schema_keys
+
+    return [k for k in schema_keys() if k.startswith(incomplete)]
+
+
+@config_group.command("show")
+@click.argument("key", required=False, shell_complete=_complete_config_key)
+@config_source_options
+def config_show(key: str | None, sources: Sequence[tuple[str, dict[str, Any]]]) -> None:
+    """Print the resolved config (defaults, then --config files, --calib, --set) as YAML,
+    each key with its comment from configs/default.yaml and each value with its source
+    (default, file PATH, --set ...). KEY: only the keys at or below this dotted prefix,
+    e.g. `fuse.hinf`. The output loads as the same config (--config)."""
+    from cvslam_cli.config import DEFAULT_CONFIG_PATH, nearest_key, to_dict, value_sources
+    from cvslam_cli.config_show import key_comments, key_paths, render_config
+
+    data = to_dict(config_from_sources(sources))
+    if key is not None and key not in key_paths(data):
+        near = nearest_key(key, key_paths(data))
+        raise CvslamError(
+            f"config show {key}: no such key"
+            + (f" (did you mean {near}?)" if near else " (see `cvslam config show`)")
+        )
+    comments = key_comments(DEFAULT_CONFIG_PATH.read_text(encoding="utf-8"))
+    click.echo(render_config(data, comments, value_sources(sources), key), nl=False)
+
+
+@config_group.command("check")
+@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
+def config_check(file: Path) -> None:
+    """Check the config FILE: one line per problem (an unknown key with the nearest valid
+    one, a wrong type or range), exit 1; "ok" and exit 0 when it has none."""
+    from cvslam_cli.config import CONFIG_FILE, config_problems, resolve_config_path
+    from cvslam_cli.errors import ConfigError
+    from cvslam_cli.io.textfiles import read_yaml_mapping
+
+    path = resolve_config_path(file)
+    problems = config_problems(
+        read_yaml_mapping(path, CONFIG_FILE, ConfigError, empty_ok=True), str(path)
+    )
+    for problem in problems:
+        click.echo(f"cvslam: error: {problem}", err=True)
+    if problems:
+        click.get_current_context().exit(1)
+    click.echo(f"{path}: ok")
+
+
 # ----------------------------------------------------------------------------- simulate
 
 
@@ -858,63 +915,6 @@ def do_run(
         log.warning(
             "eval skipped: the logs have no ground truth (give it with --gt FILE to evaluate)"
         )
-
-
-# ----------------------------------------------------------------------------- config
-
-
-@cli.group("config")
-def config_group() -> None:
-    """The configuration: every key with its value, comment and source; check a file."""
-
-
-def _complete_config_key(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
-    """Shell completion of a config key path (docs/cli.md)."""
-    from cvslam_cli.config import schema_keys
-
-    return [k for k in schema_keys() if k.startswith(incomplete)]
-
-
-@config_group.command("show")
-@click.argument("key", required=False, shell_complete=_complete_config_key)
-@config_source_options
-def config_show(key: str | None, sources: Sequence[tuple[str, dict[str, Any]]]) -> None:
-    """Print the resolved config (defaults, then --config files, --calib, --set) as YAML,
-    each key with its comment from configs/default.yaml and each value with its source
-    (default, file PATH, --set ...). KEY: only the keys at or below this dotted prefix,
-    e.g. `fuse.hinf`. The output loads as the same config (--config)."""
-    from cvslam_cli.config import DEFAULT_CONFIG_PATH, nearest_key, to_dict, value_sources
-    from cvslam_cli.config_show import key_comments, key_paths, render_config
-
-    data = to_dict(config_from_sources(sources))
-    if key is not None and key not in key_paths(data):
-        near = nearest_key(key, key_paths(data))
-        raise CvslamError(
-            f"config show {key}: no such key"
-            + (f" (did you mean {near}?)" if near else " (see `cvslam config show`)")
-        )
-    comments = key_comments(DEFAULT_CONFIG_PATH.read_text(encoding="utf-8"))
-    click.echo(render_config(data, comments, value_sources(sources), key), nl=False)
-
-
-@config_group.command("check")
-@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
-def config_check(file: Path) -> None:
-    """Check the config FILE: one line per problem (an unknown key with the nearest valid
-    one, a wrong type or range), exit 1; "ok" and exit 0 when it has none."""
-    from cvslam_cli.config import CONFIG_FILE, config_problems, resolve_config_path
-    from cvslam_cli.errors import ConfigError
-    from cvslam_cli.io.textfiles import read_yaml_mapping
-
-    path = resolve_config_path(file)
-    problems = config_problems(
-        read_yaml_mapping(path, CONFIG_FILE, ConfigError, empty_ok=True), str(path)
-    )
-    for problem in problems:
-        click.echo(f"cvslam: error: {problem}", err=True)
-    if problems:
-        click.get_current_context().exit(1)
-    click.echo(f"{path}: ok")
 
 
 # ----------------------------------------------------------------------------- many runs
