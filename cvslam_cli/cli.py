@@ -21,7 +21,7 @@ import click
 
 from cvslam_cli import __version__
 from cvslam_cli.batch.commands import COMMANDS as BATCH_COMMANDS
-from cvslam_cli.config import Config, config_from_sources, config_sources, dump_config
+from cvslam_cli.config import Config, dump_config, load_config
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.run_layout import EvalFolder, FuseFolder, RunLayout, resolved_config_beside
@@ -31,7 +31,7 @@ log = logging.getLogger("cvslam")
 
 class _OneLineFormatter(logging.Formatter):
     """`cvslam: [level: ]message`; `detailed` (-vv): also the seconds since start and the
-    logger (which stage or library said it)."""
+    logger (which stage said it)."""
 
     def __init__(self, detailed: bool = False) -> None:
         super().__init__()
@@ -65,42 +65,27 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """Add `--config FILE` (repeatable), `--calib` and `--set key.path=value` (repeatable);
     the command receives the resolved `cfg: Config`."""
 
-    @config_source_options
+    @_config_params
     @functools.wraps(func)
-    def wrapper(*args: Any, sources: Sequence[tuple[str, dict[str, Any]]], **kwargs: Any) -> Any:
-        return func(*args, cfg=config_from_sources(sources), **kwargs)
+    def wrapper(
+        *args: Any,
+        config_files: Sequence[Path],
+        overrides: Sequence[str],
+        calibs: Sequence[str],
+        **kwargs: Any,
+    ) -> Any:
+        cfg = load_config(config_files, overrides, [_calib_layer(c) for c in calibs])
+        return func(*args, cfg=cfg, **kwargs)
 
     return wrapper
 
 
 def config_source_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """The options of `config_options`; the command receives the config's `sources` (name,
-    mapping), lowest precedence first (`config.config_sources`)."""
+    mapping), lowest precedence first (`config.config_sources`), instead of the config."""
+    from cvslam_cli.config import config_sources
 
-    @click.option(
-        "--config",
-        "config_files",
-        multiple=True,
-        metavar="FILE",
-        type=click.Path(dir_okay=False, path_type=Path),
-        help="YAML config file, or the name of a shipped one (kitti, paper) (repeatable; "
-        "later files override earlier ones).",
-    )
-    @click.option(
-        "--set",
-        "overrides",
-        multiple=True,
-        metavar="KEY.PATH=VALUE",
-        help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 (repeatable).",
-    )
-    @click.option(
-        "--calib",
-        "calibs",
-        multiple=True,
-        metavar="[VEHICLE=]FILE",
-        help="Kalibr camchain(-imucam).yaml: the stereo rig of every vehicle, or of VEHICLE "
-        "(with its image topics); applied after --config, before --set (repeatable).",
-    )
+    @_config_params
     @functools.wraps(func)
     def wrapper(
         *args: Any,
@@ -113,6 +98,42 @@ def config_source_options(func: Callable[..., Any]) -> Callable[..., Any]:
         return func(*args, sources=config_sources(config_files, overrides, layers), **kwargs)
 
     return wrapper
+
+
+def _config_params(func: Callable[..., Any]) -> Callable[..., Any]:
+    """`--config`, `--set`, `--calib`: the command receives config_files, overrides, calibs."""
+    for option in reversed(
+        [
+            click.option(
+                "--config",
+                "config_files",
+                multiple=True,
+                metavar="FILE",
+                type=click.Path(dir_okay=False, path_type=Path),
+                help="YAML config file, or the name of a shipped one (kitti, paper) "
+                "(repeatable; later files override earlier ones).",
+            ),
+            click.option(
+                "--set",
+                "overrides",
+                multiple=True,
+                metavar="KEY.PATH=VALUE",
+                help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 "
+                "(repeatable).",
+            ),
+            click.option(
+                "--calib",
+                "calibs",
+                multiple=True,
+                metavar="[VEHICLE=]FILE",
+                help="Kalibr camchain(-imucam).yaml: the stereo rig of every vehicle, or of "
+                "VEHICLE (with its image topics); applied after --config, before --set "
+                "(repeatable).",
+            ),
+        ]
+    ):
+        func = option(func)
+    return func
 
 
 def _calib_layer(spec: str) -> tuple[str, dict[str, Any]]:
@@ -407,7 +428,13 @@ def config_show(key: str | None, sources: Sequence[tuple[str, dict[str, Any]]]) 
     each key with its comment from configs/default.yaml and each value with its source
     (default, file PATH, --set ...). KEY: only the keys at or below this dotted prefix,
     e.g. `fuse.hinf`. The output loads as the same config (--config)."""
-    from cvslam_cli.config import DEFAULT_CONFIG_PATH, nearest_key, to_dict, value_sources
+    from cvslam_cli.config import (
+        DEFAULT_CONFIG_PATH,
+        config_from_sources,
+        nearest_key,
+        to_dict,
+        value_sources,
+    )
     from cvslam_cli.config_show import key_comments, key_paths, render_config
 
     data = to_dict(config_from_sources(sources))
