@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.install-stamp
 SHARED_DATA ?= $(if $(CVSLAM_SHARED_DATA),$(CVSLAM_SHARED_DATA),../shared/data)
 DEMO_DIR ?= runs/demo
 
-.PHONY: install test lint bench demo clean check-report fuzz batch all-datasets summary
+.PHONY: install test lint bench demo clean check-report fuzz batch all-datasets summary wheel-test
 
 install: $(STAMP)
 
@@ -32,6 +32,11 @@ demo: install
 
 clean:
 	rm -rf $(VENV) runs datasets/generated .pytest_cache .ruff_cache
+
+# Build the wheel, install it in a fresh venv and run the demo scenario with it (~70 s;
+# `make test` only checks the wheel's contents).
+wheel-test: install
+	CVSLAM_WHEEL_TEST=1 $(BIN)/python -m pytest -q -p no:cacheprovider tests/test_wheel.py
 
 # Render the demo's report in headless Chromium and check every image loaded (needs chromium).
 check-report: install

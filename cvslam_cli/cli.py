@@ -30,8 +30,17 @@ log = logging.getLogger("cvslam")
 
 
 class _OneLineFormatter(logging.Formatter):
+    """`cvslam: [level: ]message`; `detailed` (-vv): also the seconds since start and the
+    logger (which stage said it)."""
+
+    def __init__(self, detailed: bool = False) -> None:
+        super().__init__()
+        self.detailed = detailed
+
     def format(self, record: logging.LogRecord) -> str:
         prefix = "" if record.levelno == logging.INFO else f"{record.levelname.lower()}: "
+        if self.detailed:
+            prefix = f"[{record.relativeCreated / 1000:8.3f} s {record.name}] {prefix}"
         return f"cvslam: {prefix}{record.getMessage()}"
 
 
@@ -40,9 +49,11 @@ class _TerminalHandler(logging.StreamHandler):
 
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
+    """The `cvslam` logger's level and terminal handler: INFO; -v DEBUG; -vv DEBUG with
+    the seconds since start and the logger's name on each line; -q WARNING."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
     handler = _TerminalHandler(sys.stderr)
-    handler.setFormatter(_OneLineFormatter())
+    handler.setFormatter(_OneLineFormatter(detailed=verbose >= 2 and not quiet))
     # replace the terminal handler of an earlier call, keep others (a run's log file)
     log.handlers[:] = [h for h in log.handlers if not isinstance(h, _TerminalHandler)]
     log.addHandler(handler)
@@ -51,32 +62,10 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 
 def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """Add `--config FILE` (repeatable) and `--set key.path=value` (repeatable); the
-    command receives the resolved `cfg: Config`."""
+    """Add `--config FILE` (repeatable), `--calib` and `--set key.path=value` (repeatable);
+    the command receives the resolved `cfg: Config`."""
 
-    @click.option(
-        "--config",
-        "config_files",
-        multiple=True,
-        metavar="FILE",
-        type=click.Path(dir_okay=False, path_type=Path),
-        help="YAML config file (repeatable; later files override earlier ones).",
-    )
-    @click.option(
-        "--set",
-        "overrides",
-        multiple=True,
-        metavar="KEY.PATH=VALUE",
-        help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 (repeatable).",
-    )
-    @click.option(
-        "--calib",
-        "calibs",
-        multiple=True,
-        metavar="[VEHICLE=]FILE",
-        help="Kalibr camchain(-imucam).yaml: the stereo rig of every vehicle, or of VEHICLE "
-        "(with its image topics); applied after --config, before --set (repeatable).",
-    )
+    @_config_params
     @functools.wraps(func)
     def wrapper(
         *args: Any,
@@ -89,6 +78,62 @@ def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
         return func(*args, cfg=cfg, **kwargs)
 
     return wrapper
+
+
+def config_source_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """The options of `config_options`; the command receives the config's `sources` (name,
+    mapping), lowest precedence first (`config.config_sources`), instead of the config."""
+    from cvslam_cli.config import config_sources
+
+    @_config_params
+    @functools.wraps(func)
+    def wrapper(
+        *args: Any,
+        config_files: Sequence[Path],
+        overrides: Sequence[str],
+        calibs: Sequence[str],
+        **kwargs: Any,
+    ) -> Any:
+        layers = [_calib_layer(c) for c in calibs]
+        return func(*args, sources=config_sources(config_files, overrides, layers), **kwargs)
+
+    return wrapper
+
+
+def _config_params(func: Callable[..., Any]) -> Callable[..., Any]:
+    """`--config`, `--set`, `--calib`: the command receives config_files, overrides, calibs."""
+    for option in reversed(
+        [
+            click.option(
+                "--config",
+                "config_files",
+                multiple=True,
+                metavar="FILE",
+                type=click.Path(dir_okay=False, path_type=Path),
+                help="YAML config file, or the name of a shipped one (kitti, paper) "
+                "(repeatable; later files override earlier ones).",
+            ),
+            click.option(
+                "--set",
+                "overrides",
+                multiple=True,
+                metavar="KEY.PATH=VALUE",
+                help="Override one config key, e.g. --set logs.stereo_pair_tolerance_ms=5 "
+                "(repeatable).",
+            ),
+            click.option(
+                "--calib",
+                "calibs",
+                multiple=True,
+                metavar="[VEHICLE=]FILE",
+                help="Kalibr camchain(-imucam).yaml: the stereo rig of every vehicle, or of "
+                "VEHICLE (with its image topics); applied after --config, before --set "
+                "(repeatable).",
+            ),
+        ]
+    ):
+        func = option(func)
+    return func
 
 
 def _calib_layer(spec: str) -> tuple[str, dict[str, Any]]:
@@ -148,13 +193,71 @@ def write_resolved_config(cfg: Config, path: Path) -> Path:
     return path
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+# ----------------------------------------------------------------------------- global options
+
+_VERBOSITY = "cvslam.verbosity"  # key in the root context's meta: the counts of -v and -q
+
+
+def _on_global_option(ctx: click.Context, param: click.Parameter, value: Any) -> None:
+    """Add one command's -v count (or -q) to the whole command line's and set up the logging:
+    `cvslam -v fuse RUN -v` is -vv."""
+    seen = ctx.find_root().meta.setdefault(_VERBOSITY, {"verbose": 0, "quiet": False})
+    if param.name == "verbose":
+        seen["verbose"] += value
+    else:
+        seen["quiet"] = seen["quiet"] or bool(value)
+    _setup_logging(seen["verbose"], seen["quiet"])
+
+
+def _global_options() -> list[click.Option]:
+    """Fresh -v/-q options (one set per command): `-v` debug lines saying what each stage
+    chose and why, `-vv` with times and logger names; `-q` only warnings and errors."""
+    common: dict[str, Any] = {"expose_value": False, "callback": _on_global_option}
+    return [
+        click.Option(
+            ["-v", "--verbose"],
+            count=True,
+            help="More output: -v what each stage chose and why, -vv with times and the "
+            "logger of each line (anywhere on the command line).",
+            **common,
+        ),
+        click.Option(["-q", "--quiet"], is_flag=True, help="Only warnings and errors.", **common),
+    ]
+
+
+def _add_global_options(cmd: click.Command) -> None:
+    """Give `cmd` (and the commands of a plain click group it is) the global options."""
+    if not any(p.name == "verbose" for p in cmd.params):
+        cmd.params.extend(_global_options())
+    if isinstance(cmd, click.Group) and not isinstance(cmd, CvslamGroup):
+        for sub in cmd.commands.values():
+            _add_global_options(sub)
+
+
+class CvslamGroup(click.Group):
+    """A click group whose every command takes the global options (-v, -q) wherever they
+    are on the command line: they are added to each command as it is added to the group
+    (`@cli.command()`, `@cli.group()`, `cli.add_command(...)`), so a new command has them
+    without doing anything. Subgroups made with `@group.group()` are CvslamGroups too."""
+
+    group_class = type
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        _add_global_options(self)
+
+    def add_command(self, cmd: click.Command, name: str | None = None) -> None:
+        _add_global_options(cmd)
+        super().add_command(cmd, name)
+
+
+@click.group(cls=CvslamGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="cvslam")
-@click.option("-v", "--verbose", count=True, help="More output (debug messages).")
-@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
-def cli(verbose: int, quiet: bool) -> None:
-    """Cooperative stereo visual SLAM from ROS 2 and ROS 1 bags (no ROS install needed)."""
-    _setup_logging(verbose, quiet)
+def cli() -> None:
+    """Cooperative stereo visual SLAM from ROS 2 and ROS 1 bags (no ROS install needed).
+
+    -v / -q are accepted before or after any command.
+    """
 
 
 # ----------------------------------------------------------------------------- info
@@ -300,6 +403,69 @@ def import_kalibr_cmd(camchain: Path, output: Path, vehicle: str | None) -> None
 
     write_text_atomic(output, kalibr_config_text(camchain, vehicle))
     log.info("wrote %s (use it with --config %s)", output, output)
+
+
+# ----------------------------------------------------------------------------- config
+
+
+@cli.group("config")
+def config_group() -> None:
+    """The configuration: every key with its value, comment and source; check a file."""
+
+
+def _complete_config_key(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
+    """Shell completion of a config key path (docs/cli.md)."""
+    from cvslam_cli.config import schema_keys
+
+    return [k for k in schema_keys() if k.startswith(incomplete)]
+
+
+@config_group.command("show")
+@click.argument("key", required=False, shell_complete=_complete_config_key)
+@config_source_options
+def config_show(key: str | None, sources: Sequence[tuple[str, dict[str, Any]]]) -> None:
+    """Print the resolved config (defaults, then --config files, --calib, --set) as YAML,
+    each key with its comment from configs/default.yaml and each value with its source
+    (default, file PATH, --set ...). KEY: only the keys at or below this dotted prefix,
+    e.g. `fuse.hinf`. The output loads as the same config (--config)."""
+    from cvslam_cli.config import (
+        DEFAULT_CONFIG_PATH,
+        config_from_sources,
+        nearest_key,
+        to_dict,
+        value_sources,
+    )
+    from cvslam_cli.config_show import key_comments, key_paths, render_config
+
+    data = to_dict(config_from_sources(sources))
+    if key is not None and key not in key_paths(data):
+        near = nearest_key(key, key_paths(data))
+        raise CvslamError(
+            f"config show {key}: no such key"
+            + (f" (did you mean {near}?)" if near else " (see `cvslam config show`)")
+        )
+    comments = key_comments(DEFAULT_CONFIG_PATH.read_text(encoding="utf-8"))
+    click.echo(render_config(data, comments, value_sources(sources), key), nl=False)
+
+
+@config_group.command("check")
+@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
+def config_check(file: Path) -> None:
+    """Check the config FILE: one line per problem (an unknown key with the nearest valid
+    one, a wrong type or range), exit 1; "ok" and exit 0 when it has none."""
+    from cvslam_cli.config import CONFIG_FILE, config_problems, resolve_config_path
+    from cvslam_cli.errors import ConfigError
+    from cvslam_cli.io.textfiles import read_yaml_mapping
+
+    path = resolve_config_path(file)
+    problems = config_problems(
+        read_yaml_mapping(path, CONFIG_FILE, ConfigError, empty_ok=True), str(path)
+    )
+    for problem in problems:
+        click.echo(f"cvslam: error: {problem}", err=True)
+    if problems:
+        click.get_current_context().exit(1)
+    click.echo(f"{path}: ok")
 
 
 # ----------------------------------------------------------------------------- simulate
@@ -708,7 +874,14 @@ def do_eval(
     from cvslam_cli.evaluation.stage import headline_text, run
 
     with run_session(run_dir, "eval"):
-        summary = run(cfg, run_dir, gt=gt, log_paths=log_paths, force=force)
+        summary = run(
+            cfg,
+            run_dir,
+            gt=gt,
+            log_paths=log_paths,
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
     # labelled, so that tables of runs made in parallel (make -j) say which run they are of
     click.echo(f"{run_dir}:\n{headline_text(summary.headline)}")
     log.info("report: %s", EvalFolder(summary.out_dir).report_html)

@@ -1,7 +1,8 @@
 """Configuration: YAML files loaded into frozen dataclasses, validated at the boundary.
 
 Sources, lowest precedence first: the dataclass defaults (mirrored, with a comment per key,
-in `configs/default.yaml`), then each `--config FILE`, then each `--set key.path=value`.
+in `cvslam_cli/configs/default.yaml`: `configs/` of the repository), then each `--config
+FILE`, then each `--set key.path=value`.
 Each source is checked on its own so that an error names the file (or the `--set` option)
 and the key path at fault, plus what was expected:
 
@@ -15,6 +16,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
+import importlib.resources
 import math
 import re
 import types
@@ -30,7 +33,10 @@ from cvslam_cli.errors import ConfigError
 from cvslam_cli.io.textfiles import read_yaml_mapping
 
 IDENTITY_4X4: tuple[float, ...] = tuple(1.0 if i % 5 == 0 else 0.0 for i in range(16))
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
+# The shipped configs and scenarios (package data; `configs` in the repository root is a link
+# to it). An installed package is a folder, so its resources are plain paths.
+CONFIG_DIR = Path(str(importlib.resources.files("cvslam_cli") / "configs"))
+DEFAULT_CONFIG_PATH = CONFIG_DIR / "default.yaml"
 
 
 def opt(
@@ -592,6 +598,34 @@ def _nest(parts: list[str], value: Any) -> dict[str, Any]:
 CONFIG_FILE = "a config file"
 
 
+def resolve_config_path(path: Path | str) -> Path:
+    """A config file, or the name of one shipped in the package (`kitti`, `paper`:
+    cvslam_cli/configs/NAME.yaml), so that an installed cvslam has them too."""
+    path = Path(path)
+    if path.exists() or path.suffix or len(path.parts) != 1:
+        return path
+    named = CONFIG_DIR / f"{path}.yaml"
+    return named if named.exists() else path
+
+
+def config_sources(
+    files: typing.Sequence[Path | str] = (),
+    overrides: typing.Sequence[str] = (),
+    layers: typing.Sequence[tuple[str, dict[str, Any]]] = (),
+) -> list[tuple[str, dict[str, Any]]]:
+    """The sources of a config as (name for messages, mapping), lowest precedence first:
+    the config files, `layers` (e.g. a Kalibr calibration), the `key.path=value` overrides."""
+    paths = [resolve_config_path(f) for f in files]
+    sources: list[tuple[str, dict[str, Any]]] = [
+        (str(f), read_yaml_mapping(f, CONFIG_FILE, ConfigError, empty_ok=True)) for f in paths
+    ]
+    sources.extend(layers)
+    for text in overrides:
+        parts, value = parse_override(text)
+        sources.append((f"--set {text}", _nest(parts, value)))
+    return sources
+
+
 def load_config(
     files: typing.Sequence[Path | str] = (),
     overrides: typing.Sequence[str] = (),
@@ -599,14 +633,12 @@ def load_config(
 ) -> Config:
     """Build the resolved config from config files, then `layers` ((name for messages,
     mapping), e.g. a Kalibr calibration), then `key.path=value` overrides."""
+    return config_from_sources(config_sources(files, overrides, layers))
+
+
+def config_from_sources(sources: typing.Sequence[tuple[str, dict[str, Any]]]) -> Config:
+    """The resolved config of `sources` (`config_sources`), each checked on its own."""
     merged: dict[str, Any] = {}
-    sources: list[tuple[str, dict[str, Any]]] = [
-        (str(f), read_yaml_mapping(Path(f), CONFIG_FILE, ConfigError, empty_ok=True)) for f in files
-    ]
-    sources.extend(layers)
-    for text in overrides:
-        parts, value = parse_override(text)
-        sources.append((f"--set {text}", _nest(parts, value)))
     for name, raw in sources:
         raw = _normalise(raw)
         # validate each source alone, so that an error names it
@@ -616,6 +648,102 @@ def load_config(
     cfg = build_dataclass(Config, merged, "", "config")
     _check_pairs(cfg, "", [(name, _expand_vehicles(raw)) for name, raw in sources])
     return cfg
+
+
+def value_sources(sources: typing.Sequence[tuple[str, dict[str, Any]]]) -> dict[str, str]:
+    """The source (its name in `sources`) that set each leaf key (dotted path) last; keys
+    no source sets are the defaults' (a `logs.vehicles.NAME` key also comes from
+    `logs.vehicle_defaults`)."""
+    out: dict[str, str] = {}
+
+    def walk(node: Any, path: str, name: str) -> None:
+        if isinstance(node, Mapping) and node:
+            for k, v in node.items():
+                walk(v, f"{path}.{k}" if path else str(k), name)
+        else:
+            out[path] = name
+
+    for name, raw in sources:
+        walk(_normalise(raw), "", name)
+    return out
+
+
+def schema_keys(cls: type = Config, path: str = "") -> list[str]:
+    """Every key path of a config dataclass, sections and leaves (mappings such as
+    `logs.vehicles` are leaves: their keys are names)."""
+    out = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        sub = f"{path}.{f.name}" if path else f.name
+        out.append(sub)
+        if dataclasses.is_dataclass(hints[f.name]):
+            out.extend(schema_keys(hints[f.name], sub))
+    return out
+
+
+def nearest_key(key: str, candidates: typing.Iterable[str]) -> str | None:
+    """The candidate closest to `key` (a misspelt key), or None when none is close."""
+    close = difflib.get_close_matches(key, list(candidates), n=1, cutoff=0.6)
+    return close[0] if close else None
+
+
+def config_problems(raw: Mapping[str, Any], source: str) -> list[str]:
+    """Every problem of one config source (a file's mapping), one line each naming the
+    source and the key: an unknown key with the nearest valid one, a wrong type or range
+    (the checks `load_config` makes); then, when each key is right, what loading it alone
+    says (e.g. a pair out of order). Empty: it loads."""
+    problems: list[str] = []
+    _collect_problems(Config, _normalise(raw), "", source, problems)
+    if not problems:
+        try:
+            config_from_sources([(source, dict(raw))])
+        except ConfigError as exc:
+            problems.append(str(exc))
+    return problems
+
+
+def _collect_problems(
+    cls: type, raw: Mapping[str, Any], path: str, source: str, out: list[str]
+) -> None:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key, value in raw.items():
+        sub = f"{path}.{key}" if path else str(key)
+        if key not in fields:
+            out.append(f"{source}: {sub}: unknown key ({_suggestion(cls, str(key), path)})")
+            continue
+        tp = hints[key]
+        entry_tp = typing.get_args(tp)[1] if typing.get_origin(tp) is dict else None
+        if dataclasses.is_dataclass(tp) and isinstance(value, Mapping):
+            _collect_problems(tp, value, sub, source, out)
+        elif dataclasses.is_dataclass(entry_tp) and isinstance(value, Mapping):
+            for name, entry in value.items():
+                problem = file_name_problem(str(name))
+                if problem is not None:
+                    out.append(f"{source}: {sub}.{name}: {problem}")
+                elif isinstance(entry, Mapping):
+                    _collect_problems(entry_tp, entry, f"{sub}.{name}", source, out)
+                else:
+                    out.append(f"{source}: {sub}.{name}: expected a mapping, got {entry!r}")
+        else:
+            try:
+                _convert(tp, value, sub, source, fields[key].metadata)
+            except ConfigError as exc:
+                out.append(str(exc))
+
+
+def _suggestion(cls: type, key: str, path: str) -> str:
+    """'did you mean X?' for an unknown key: a sibling spelt alike, or a key of that name
+    elsewhere in the section; else the keys expected there."""
+    fields = [f.name for f in dataclasses.fields(cls)]
+    near = nearest_key(key, fields)
+    if near is not None:
+        return f"did you mean {path + '.' if path else ''}{near}?"
+    top = path.split(".")[0]
+    elsewhere = [k for k in schema_keys() if k.split(".")[-1] == key and k.startswith(top)]
+    if elsewhere:
+        return f"did you mean {elsewhere[0]}?"
+    return f"expected one of: {', '.join(fields)}"
 
 
 def _check_pairs(node: Any, path: str, sources: list[tuple[str, dict[str, Any]]]) -> None:

@@ -9,15 +9,18 @@ threaded: the parallelism is across jobs.
 The pool is `concurrent.futures.ProcessPoolExecutor`, which watches its workers: one that
 dies (killed, out of memory, a crash in native code) breaks the pool at once, and the map
 raises `WorkerError` naming the job it was waiting for instead of waiting forever. Workers
-ignore SIGINT and SIGTERM, so Ctrl-C (sent to the whole process group) and SIGTERM reach only
-the main process, which cancels the jobs not started, lets the running ones finish and shuts
-the pool down (no worker traceback, no semaphore left behind); `cli.main` turns SIGTERM into
-the same unwinding as Ctrl-C. A worker killed with SIGKILL is the WorkerError above.
+ignore SIGINT and SIGTERM (and are started with them blocked, so that one arriving while a
+worker imports does not raise there either), so Ctrl-C (sent to the whole process group) and
+SIGTERM reach only the main process, which cancels the jobs not started, lets the running
+ones finish and shuts the pool down (no worker traceback, no semaphore left behind);
+`cli.main` turns SIGTERM into the same unwinding as Ctrl-C. A worker killed with SIGKILL is
+the WorkerError above.
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import multiprocessing
 import signal
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -39,10 +42,16 @@ class WorkerError(CvslamError):
     """A worker process died (was killed, ran out of memory, crashed) before its job ended."""
 
 
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
 def _init(state: Mapping[str, Any]) -> None:
-    # Ctrl-C and SIGTERM sent to the whole process group are the main process's to handle
+    # Ctrl-C and SIGTERM sent to the whole process group are the main process's to handle;
+    # the worker was started with them blocked (`_stop_signals_blocked`): ignored now, any
+    # that came while it started up is dropped
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     cv2.setNumThreads(1)
     STATE.clear()
     STATE.update(state)
@@ -83,7 +92,8 @@ def ordered_map(
         it = iter(jobs)
         for job in it:
             try:
-                future = pool.submit(fn, job)
+                with _stop_signals_blocked():  # submit starts the workers (spawn: on demand)
+                    future = pool.submit(fn, job)
             except BrokenProcessPool:  # it broke since the last result: name the oldest job
                 raise _died(pending[0][0] if pending else job, describe) from None
             pending.append((job, future))
@@ -93,6 +103,18 @@ def ordered_map(
             yield _result(*pending.popleft(), describe)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _stop_signals_blocked() -> Iterator[None]:
+    """SIGINT and SIGTERM held back in this thread meanwhile (delivered after): a worker
+    process started now inherits the blocked mask through fork and exec, so a Ctrl-C while
+    it imports (before `_init` ignores it) cannot raise KeyboardInterrupt there."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _result(job: J, future: Future[R], describe: Callable[[J], str]) -> R:

@@ -42,7 +42,7 @@ from cvslam_cli.estimation.motion.models import (
     odometry_input,
 )
 from cvslam_cli.estimation.observation import StereoObservationModel
-from cvslam_cli.estimation.settings import SlamSettings, WindowSettings
+from cvslam_cli.estimation.settings import SlamSettings, WindowSettings, landmark_bound
 from cvslam_cli.estimation.slam import (
     Slam,
     SlamResult,
@@ -182,6 +182,9 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
     if kind == "auto":
         kind, why = _auto_model(vehicle, motion, mc.fallback_constant_velocity)
         log.info("%s: motion model %s (%s; fuse.motion.model to choose)", vehicle, kind, why)
+    else:
+        log.debug("%s: motion model %s (fuse.motion.model)", vehicle, kind)
+    _log_motion_inputs(vehicle, kind, motion, mc)
     if kind == "ins":
         if not len(motion.imu_stamps_ns):
             raise CvslamError(f"vehicle {vehicle}: fuse.motion.model is ins but no IMU messages")
@@ -203,6 +206,85 @@ def _model(cfg: FuseConfig, vehicle: str, motion: _Motion, z_nav_m: float) -> Mo
             mc.odometry_speed_noise_density, mc.odometry_yaw_rate_noise_density, z_nav_m=z_nav_m
         )
     return ConstantVelocityModel(mc.cv_accel_noise_density, mc.cv_angular_accel_noise_density)
+
+
+def _log_motion_inputs(vehicle: str, kind: str, motion: _Motion, mc: Any) -> None:
+    """-v: the samples and the process noise the chosen motion model runs on."""
+    if kind == "ins":
+        log.debug(
+            "%s: %d IMU samples; noise densities accel %.3g, gyro %.3g, random walks accel "
+            "%.3g, gyro %.3g; biases %s (fuse.motion)",
+            vehicle,
+            len(motion.imu_stamps_ns),
+            mc.accel_noise_density,
+            mc.gyro_noise_density,
+            mc.accel_random_walk,
+            mc.gyro_random_walk,
+            "estimated" if mc.imu_biases else "not estimated",
+        )
+    elif kind == "odometry":
+        log.debug(
+            "%s: %d odometry samples; noise densities speed %.3g, yaw rate %.3g (fuse.motion)",
+            vehicle,
+            len(motion.odom_stamps_ns),
+            mc.odometry_speed_noise_density,
+            mc.odometry_yaw_rate_noise_density,
+        )
+    else:
+        log.debug(
+            "%s: constant velocity; noise densities accel %.3g, angular accel %.3g (fuse.motion)",
+            vehicle,
+            mc.cv_accel_noise_density,
+            mc.cv_angular_accel_noise_density,
+        )
+
+
+def _log_settings(
+    cfg: FuseConfig, kind: str, settings: SlamSettings, inputs: list[VehicleInput]
+) -> None:
+    """-v: the filter, its bound, the association and map settings the run uses, and each
+    vehicle's initial pose."""
+    f = settings.filter
+    if kind == "hinf":
+        log.debug(
+            "fuse: filter NH-infinity, gamma %g (fuse.hinf.gamma; where the bound does not "
+            "exist gamma^2 is raised to %g x the largest eigenvalue, fuse.hinf.gamma_margin), "
+            "bound on %s states (fuse.hinf.bound), c_w %g, c_v %g",
+            f.gamma,
+            f.gamma_margin,
+            "the vehicle" if f.bound == "vehicle" else "all",
+            f.c_w,
+            f.c_v,
+        )
+    else:
+        log.debug("fuse: filter EKF (no H-infinity bound: gamma, c_w, c_v unused)")
+    log.debug(
+        "fuse: association: pixel sigma %.2f px, gate chi2 %.2f, consistency chi2 %.2f (4 dof), "
+        "descriptor ratio %.2f, max descriptor distance %.0f (fuse.association)",
+        settings.pixel_sigma_px,
+        settings.gate_chi2,
+        settings.consistency_chi2,
+        settings.descriptor_ratio,
+        settings.max_descriptor_distance,
+    )
+    log.debug(
+        "fuse: map: at most %d landmarks in the state with %d vehicle(s), %d updates and %d "
+        "new landmarks per frame, new ones ranked by %s (fuse.map)",
+        landmark_bound(settings, len(inputs)),
+        len(inputs),
+        settings.max_updates_per_frame,
+        settings.max_new_per_frame,
+        settings.new_landmark_priority,
+    )
+    for v in inputs:
+        at = [i for i, n in enumerate(v.model.state_names) if n in ("p_n", "p_e", "p_d")]
+        log.debug(
+            "%s: initial pose from %s at stamp %d ns, position (%s) m (fuse.initial)",
+            v.name,
+            initial_pose_source(cfg, v.name),
+            v.start_ns,
+            ", ".join(f"{x:.2f}" for x in np.asarray(v.x0)[at]),
+        )
 
 
 def _initial_pose(
@@ -584,6 +666,7 @@ def run(
     logs = open_logs(logs_used, cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     settings = slam_settings(cfg.fuse, kind)
+    _log_settings(cfg.fuse, kind, settings, inputs)
     coords, why = resolve(settings.landmark_coordinates, [v.model.kind for v in inputs])
     log.info("fuse: landmarks in %s coordinates (%s)", coords, why)
     res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress)

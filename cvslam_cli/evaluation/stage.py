@@ -21,7 +21,7 @@ import itertools
 import json
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
+from tqdm import tqdm
 
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, EvalConfig, LogsConfig, dump_config
@@ -274,9 +275,14 @@ def _nees_band(cfg: EvalConfig, dof: int) -> tuple[float, float]:
 
 
 def _all_metrics(
-    estimates: list[_Estimate], truth: dict[str, PoseTable], truth_source: str, cfg: EvalConfig
+    estimates: list[_Estimate],
+    truth: dict[str, PoseTable],
+    truth_source: str,
+    cfg: EvalConfig,
+    tick: Callable[[], object] = lambda: None,
 ) -> tuple[list[dict[str, Any]], dict[tuple[str, str], _Nees]]:
-    """(one metrics row per estimate, the NEES over time per (run, vehicle) that has one)."""
+    """(one metrics row per estimate, the NEES over time per (run, vehicle) that has one);
+    `tick()` after each estimate (the progress bar)."""
     rows = []
     nees_of = {}
     for e in estimates:
@@ -290,6 +296,15 @@ def _all_metrics(
         rows.append(row)
         if nees_series is not None:
             nees_of[(e.run, e.vehicle)] = nees_series
+        log.debug(
+            "eval: %s, %s: %d poses matched (eval.max_time_diff_ms %g), ATE RMSE %.3f m",
+            e.label,
+            e.vehicle,
+            row["poses"],
+            cfg.max_time_diff_ms,
+            row["ate_rmse_m"],
+        )
+        tick()
     return rows, nees_of
 
 
@@ -477,8 +492,10 @@ def _figures(
     headline: pd.DataFrame,
     nees_of: dict[tuple[str, str], _Nees],
     cfg: EvalConfig,
+    tick: Callable[[], object] = lambda: None,
 ) -> list[FigureEntry]:
-    """Every figure of the report, each written as soon as it is made (one in memory)."""
+    """Every figure of the report, each written as soon as it is made (one in memory);
+    `tick()` after each (the progress bar)."""
     t0_ns = min(int(t.stamps_ns[0]) for t in truth.values())
     by = {(e.run, e.vehicle): e for e in estimates}
     main_run = next((r for r in RUN_LABELS if any(k[0] == r for k in by)), None)
@@ -496,6 +513,7 @@ def _figures(
         path = out.figure(name)
         write_bytes_atomic(path, figs.png_bytes(fig))
         entries.append(FigureEntry(path, title, caption))
+        tick()
     return entries
 
 
@@ -585,7 +603,10 @@ def run(
     gt: Sequence[str] = (),
     log_paths: Sequence[Path] = (),
     force: bool = False,
+    progress: bool = False,
 ) -> EvalSummary:
+    """Evaluate every estimate of `run_dir`; `progress`: a progress bar (on a terminal)
+    over the estimates, then the figures."""
     t_start = time.perf_counter()
     layout = RunLayout(run_dir)
     rd = RunDir(run_dir)
@@ -603,7 +624,15 @@ def run(
         return EvalSummary(run_dir, out.path, True, old, pd.read_csv(out.metrics_csv))
     check_writable(outputs)  # before the work: a read-only folder, a name too long
     estimates = [e for e in _estimates(runs, vehicles) if e.vehicle in truth]
-    rows, nees_of = _all_metrics(estimates, truth, truth_source, cfg.eval)
+    log.debug(
+        "eval: %d estimate(s) of %s against %s, alignment %s (eval.align)",
+        len(estimates),
+        ", ".join(sorted(truth)),
+        truth_source,
+        cfg.eval.align,
+    )
+    with _bar(progress, "eval metrics", "estimate", len(estimates)) as bar:
+        rows, nees_of = _all_metrics(estimates, truth, truth_source, cfg.eval, bar.update)
     # which run and dataset each row is of, for tables across runs (`cvslam summary`)
     dataset = cfg.run.dataset or run_dir.resolve().name
     rows = [{"dataset": dataset, "run_dir": run_dir.resolve().name, **r} for r in rows]
@@ -612,7 +641,10 @@ def run(
 
     with atomic_dir(out.path) as tmp:
         written = EvalFolder(tmp)
-        entries = _figures(layout, written, estimates, truth, headline, nees_of, cfg.eval)
+        with _bar(progress, "eval figures", "figure") as bar:
+            entries = _figures(
+                layout, written, estimates, truth, headline, nees_of, cfg.eval, bar.update
+            )
         metrics.to_csv(written.metrics_csv, index=False)  # full precision (repr)
         headline.to_csv(written.headline_csv)
         provenance = _provenance(rd, truth_source, truth_files, runs, cfg.eval.align)
@@ -625,6 +657,11 @@ def run(
     wall = time.perf_counter() - t_start
     rd.record(EVAL, plan, outputs, _record_summary(metrics_json, len(entries)), wall)
     return EvalSummary(run_dir, out.path, False, headline, metrics, wall)
+
+
+def _bar(progress: bool, desc: str, unit: str, total: int | None = None) -> tqdm:
+    """A progress bar like the other stages': on a terminal, when `progress`."""
+    return tqdm(total=total, desc=desc, unit=unit, disable=None if progress else True, leave=False)
 
 
 def _num(x: Any) -> Any:

@@ -222,6 +222,30 @@ def _log_stereo_limits(rigs: dict[str, StereoRig], cfg: ExtractConfig) -> None:
         )
 
 
+def _log_detector(cfg: ExtractConfig, workers: int, scheduler: str | None) -> None:
+    """-v: the detector chosen and where the frames are worked on."""
+    a, sift = cfg.adaptive, cfg.sift
+    if a.enabled:
+        detector = (
+            f"adaptive SIFT ({a.layers_min}-{a.layers_max} layers per octave, contrast "
+            f"{a.contrast_min:g}-{a.contrast_max:g}, {a.features_min}-{a.features_max} "
+            "keypoints per image; extract.adaptive)"
+        )
+    else:
+        detector = (
+            f"fixed SIFT ({sift.n_octave_layers} layers per octave, contrast "
+            f"{sift.contrast_threshold:g}; extract.adaptive.enabled is false)"
+        )
+    where = f"the Dask cluster at {scheduler}" if scheduler else f"{workers} worker process(es)"
+    log.debug(
+        "extract: %s, distance ratio %g, left-right check %s; frames on %s",
+        detector,
+        cfg.stereo.dist_ratio,
+        "on" if cfg.stereo.left_right_check else "off",
+        where,
+    )
+
+
 @dataclass(frozen=True, eq=False)
 class _Extracted:
     """Per vehicle: the feature set being built, one stats row per frame, and the seconds
@@ -315,6 +339,7 @@ def run(
     check_writable(outputs)  # before the work: a read-only folder, a name too long
     rigs = {v: logs.rig(v) for v in vehicles}
     _log_stereo_limits(rigs, cfg.extract)
+    _log_detector(cfg.extract, workers, scheduler)
     done = _extract(logs, rigs, cfg.extract, workers, progress, scheduler)
     for v in vehicles:
         if not done.rows[v]:

@@ -14,6 +14,7 @@ streaming never goes back to the logs for it.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections import deque
 from collections.abc import Iterable, Sequence
 from typing import Any
@@ -26,6 +27,8 @@ from cvslam_cli.geometry.camera import CameraModel, StereoRig, translation_T
 from cvslam_cli.geometry.rotations import invert_T, make_T, quat_xyzw_to_matrix
 from cvslam_cli.io.mcap_source import LogSource, RawMessage
 from cvslam_cli.io.topic_map import LogTopics
+
+log = logging.getLogger("cvslam.calibration")
 
 #: other names of the distortion models (Kalibr's radtan is ROS's plumb_bob)
 DISTORTION_ALIASES = {
@@ -222,6 +225,12 @@ class Calibration:
             # rectified pair with no extrinsics: the right camera sits b along the left's x
             right = dataclasses.replace(right, T_body_cam=left.T_body_cam @ translation_T(b_p))
             rig = StereoRig(left, right)
+            log.debug(
+                "%s: no stereo extrinsics given: right camera %.4f m along the left's x "
+                "(from the right projection matrix, P[0,3] = -fx * baseline)",
+                vehicle,
+                b_p,
+            )
         where = f"{self._names}: vehicle {vehicle}"
         left.validate(f"{where} left camera")
         right.validate(f"{where} right camera")
@@ -235,4 +244,17 @@ class Calibration:
                 "(--calib camchain.yaml reads them from a Kalibr calibration)"
             )
         rig.validate(where)
+        log.debug(
+            "%s: calibration: left from %s, right from %s; %s, baseline %.4f m, %d x %d px, "
+            "fx %.1f px, distortion %s",
+            vehicle,
+            left.source,
+            right.source,
+            "rectified" if rig.rectified else "unrectified",
+            rig.baseline_m,
+            left.width,
+            left.height,
+            left.fx,
+            left.distortion_model,
+        )
         return rig

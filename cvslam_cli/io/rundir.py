@@ -196,9 +196,11 @@ class RunDir:
         elif done.get("status") != "complete" or not all(p.exists() for p in outputs):
             reason = "previous run incomplete"
         else:
+            _log_plan(stage, "skipped", "up to date", records, section_names)
             return StagePlan("skip", "up to date", sections, records, full)
         if done:
             self._invalidate(stage, sections)
+        _log_plan(stage, "runs", reason, records, section_names)
         return StagePlan("run", reason, sections, records, full)
 
     def _invalidate(self, stage: str, sections: dict[str, Any]) -> None:
@@ -311,6 +313,24 @@ def _acquire(run_dir: Path, lock_file: Path) -> int:
     os.ftruncate(fd, 0)
     os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
     return fd
+
+
+def _log_plan(
+    stage: str,
+    action: str,
+    reason: str,
+    records: Sequence[Mapping[str, Any]],
+    section_names: Sequence[str],
+) -> None:
+    """-v: whether a stage runs or is skipped, and why."""
+    logging.getLogger("cvslam.rundir").debug(
+        "%s %s (%s): %d input file(s) by checksum, config sections %s",
+        stage,
+        action,
+        reason,
+        len(records),
+        ", ".join(section_names),
+    )
 
 
 @contextlib.contextmanager

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from cvslam_cli.config import (
+    CONFIG_DIR,
     build_dataclass,
     deep_merge,
     opt,
@@ -28,7 +29,7 @@ from cvslam_cli.sim.odometry import OdometryNoise
 from cvslam_cli.sim.terrain import TerrainSpec
 from cvslam_cli.sim.yard import YardSpec
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent.parent / "configs" / "scenarios"
+SCENARIO_DIR = CONFIG_DIR / "scenarios"  # package data (cvslam_cli/configs/scenarios)
 
 
 @dataclass(frozen=True)
