@@ -33,6 +33,7 @@ h2 { margin-top: 2em; border-bottom: 1px solid #ccc; }
 table { border-collapse: collapse; font-size: 0.92em; }
 th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: right; }
 th { background: #f3f3f3; } td:first-child, th:first-child { text-align: left; }
+.key { text-align: left; white-space: nowrap; }
 figure { margin: 1.5em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { color: #444; font-size: 0.92em; margin-top: 0.3em; }
 pre { background: #f7f7f7; padding: 1em; overflow-x: auto; font-size: 0.85em; }
@@ -102,10 +103,14 @@ def _table(frame: pd.DataFrame, float_format: str = "{:.3f}") -> str:
         return html.escape(str(v))
 
     names = [n or "" for n in frame.index.names]
-    head = "".join(f"<th>{_header(c)}</th>" for c in [*names, *frame])
+    head = "".join(f'<th class="key">{_header(c)}</th>' for c in names)
+    head += "".join(f"<th>{_header(c)}</th>" for c in frame)
     rows = [
         "<tr>"
-        + "".join(f"<td>{html.escape(str(i))}</td>" for i in (idx if len(names) > 1 else (idx,)))
+        + "".join(
+            f'<td class="key">{html.escape(str(i))}</td>'
+            for i in (idx if len(names) > 1 else (idx,))
+        )
         + "".join(f"<td>{cell(v)}</td>" for v in row)
         + "</tr>"
         for idx, row in zip(frame.index, frame.itertuples(index=False), strict=True)
