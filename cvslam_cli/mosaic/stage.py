@@ -590,7 +590,10 @@ def run(
         for p in (out.image(n), out.world_file(n), out.geotiff(n))
     ]
     inputs = [*logs_used, fuse.map_csv, *traj_files.values()]
-    plan = rd.plan(out.name, cfg, ("mosaic", "geo.origin"), inputs, outputs, force)
+    # geo.origin is part of the stage's config where it is set (so a run made without it,
+    # before the key existed too, is not "another config")
+    sections = ("mosaic", "geo.origin") if cfg.geo.origin is not None else ("mosaic",)
+    plan = rd.plan(out.name, cfg, sections, inputs, outputs, force)
     if plan.action == "skip":
         log.info("mosaic: %s is up to date (same config and inputs); --force to redo it", out.path)
         return MosaicSummary(run_dir, out.path, True, mc.source)

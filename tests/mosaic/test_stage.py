@@ -137,6 +137,8 @@ def test_origin_puts_the_mosaics_in_utm(fused_run, tmp_path, cvslam):
     res = cvslam("mosaic", run, "--source", "groundtruth", "--origin", origin)
     assert res.code == 1 and "geo.origin" in res.err and "--force" in res.err  # other config
     _ok(cvslam("-q", "mosaic", run, "--source", "groundtruth", "--origin", origin, "--force"))
+    res = cvslam("mosaic", run, "--source", "groundtruth")  # back without it: another config
+    assert res.code == 1 and "geo.origin" in res.err and "--force" in res.err
     crs, t_utm = _geotiff_matches_png(out, "all")
     assert crs.to_epsg() == 32734  # WGS 84 / UTM zone 34S
     assert np.array_equal(cv2.imread(str(out / "all.png"), cv2.IMREAD_UNCHANGED), local_png)
