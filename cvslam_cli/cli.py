@@ -21,7 +21,7 @@ import click
 
 from cvslam_cli import __version__
 from cvslam_cli.batch.commands import COMMANDS as BATCH_COMMANDS
-from cvslam_cli.config import Config, dump_config, load_config
+from cvslam_cli.config import Config, dump_config, load_config, with_origin
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_text_atomic
 from cvslam_cli.io.run_layout import EvalFolder, FuseFolder, RunLayout, resolved_config_beside
@@ -155,6 +155,16 @@ _RUN_DIR_OUTPUT = click.option(
     required=True,
     type=click.Path(file_okay=False, path_type=Path),
     help="Run directory.",
+)
+
+
+_ORIGIN_OPTION = click.option(
+    "--origin",
+    metavar="LAT,LON,ALT,HEADING",
+    default=None,
+    help="The nav origin on the Earth (WGS 84 degrees, ellipsoidal metres, heading of the nav "
+    "x axis in degrees clockwise from true north), as geo.origin: mosaics in UTM instead of "
+    "the local nav east/north.",
 )
 
 
@@ -752,6 +762,7 @@ def do_fuse(
     help="Poses to project with (default: mosaic.source, fused). Outputs go to RUN_DIR/mosaic "
     "(fused) or RUN_DIR/mosaic_<source>.",
 )
+@_ORIGIN_OPTION
 @_log_option("the images")
 @_FORCE_STAGE
 @config_options
@@ -759,6 +770,7 @@ def mosaic(
     run_dir: Path,
     gsd_m: float | None,
     source: str | None,
+    origin: str | None,
     log_paths: tuple[Path, ...],
     force: bool,
     cfg: Config,
@@ -766,9 +778,10 @@ def mosaic(
     """Ground mosaics: each vehicle's left images projected on the ground with their poses,
     blended per vehicle and all together.
 
-    Writes <vehicle>.png, all.png (with .pgw world files) and *_overlay.png to RUN_DIR/mosaic
-    (docs/mosaic.md).
+    Writes <vehicle>.png, all.png (with .pgw world files), their GeoTIFFs (.tif) and
+    *_overlay.png to RUN_DIR/mosaic (docs/mosaic.md).
     """
+    cfg = with_origin(cfg, origin)
     paths, cfg = bound_logs(log_paths, cfg)
     do_mosaic(cfg, run_dir, source=source, gsd_m=gsd_m, log_paths=paths, force=force)
 
@@ -898,6 +911,7 @@ def do_eval(
     show_default=True,
     help="Processes working on frames in parallel (extract).",
 )
+@_ORIGIN_OPTION
 @click.option("--force", is_flag=True, help="Redo every stage.")
 @config_options
 def run_cmd(
@@ -905,6 +919,7 @@ def run_cmd(
     run_dir: Path,
     gt: tuple[str, ...],
     workers: int,
+    origin: str | None,
     force: bool,
     cfg: Config,
 ) -> None:
@@ -912,6 +927,7 @@ def run_cmd(
     comparisons in run.comparisons), mosaic, eval. Stages whose config and inputs are
     unchanged are skipped. NAME=LOG: the log of vehicle NAME.
     """
+    cfg = with_origin(cfg, origin)
     paths, cfg = bound_logs(logs, cfg)
     with run_session(run_dir, "run", create=True):
         do_run(cfg, paths, run_dir, gt=gt, workers=workers, force=force)

@@ -379,6 +379,27 @@ class RunConfig:
 
 
 @dataclass(frozen=True)
+class GeoOrigin:
+    """The nav frame's origin on the Earth (WGS 84): latitude and longitude (degrees; UTM
+    covers -80 to 84 degrees of latitude), ellipsoidal height (m), and heading: the azimuth
+    of the nav x axis ("north"), degrees clockwise from true north (0: the nav frame is true
+    north-east-down). Every key is required (geometry/georef.py)."""
+
+    lat_deg: float = field(metadata={"lo": -80.0, "hi": 84.0})
+    lon_deg: float = field(metadata={"lo": -180.0, "hi": 180.0})
+    alt_m: float = field(metadata={"lo": -12000.0, "hi": 100000.0})
+    heading_deg: float = field(metadata={"lo": -360.0, "hi": 360.0})
+
+
+@dataclass(frozen=True)
+class GeoConfig:
+    """Where the nav frame is on the Earth, for georeferenced outputs (mosaics in UTM);
+    None: unknown (the mosaics get a local engineering CRS in metres)."""
+
+    origin: GeoOrigin | None = None
+
+
+@dataclass(frozen=True)
 class Config:
     logs: LogsConfig = opt(LogsConfig())
     extract: ExtractConfig = opt(ExtractConfig())
@@ -386,6 +407,7 @@ class Config:
     mosaic: MosaicConfig = opt(MosaicConfig())
     eval: EvalConfig = opt(EvalConfig())
     run: RunConfig = opt(RunConfig())
+    geo: GeoConfig = opt(GeoConfig())
 
 
 # --------------------------------------------------------------------------- building
@@ -521,6 +543,17 @@ def build_dataclass(cls: type, raw: Mapping[str, Any], path: str, source: str) -
         if name in raw:
             sub = f"{path}.{name}" if path else name
             kwargs[name] = _convert(hints[name], raw[name], sub, source, f.metadata)
+    required = [
+        n
+        for n, f in fields.items()
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
+    missing = [n for n in required if n not in kwargs]
+    if missing:  # a group whose keys go together (geo.origin): given whole or not at all
+        raise ConfigError(
+            f"{source}: {path or 'config'}: missing key(s) {', '.join(missing)} "
+            f"(give all of {', '.join(required)})"
+        )
     return cls(**kwargs)
 
 
@@ -774,6 +807,27 @@ def _has_key(raw: Any, dotted: str) -> bool:
             return False
         raw = raw[part]
     return True
+
+
+def with_origin(cfg: Config, text: str | None) -> Config:
+    """`cfg` with `--origin LAT,LON,ALT,HEADING` (degrees, degrees, metres, degrees) as
+    geo.origin, validated like a config source; None: `cfg` unchanged."""
+    if text is None:
+        return cfg
+    source = f"--origin {text}"
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 4:
+        raise ConfigError(
+            f"{source}: expected LAT,LON,ALT,HEADING (4 numbers: latitude and longitude in "
+            "degrees, ellipsoidal height in metres, heading of the nav x axis in degrees)"
+        )
+    raw = dict(zip(("lat_deg", "lon_deg", "alt_m", "heading_deg"), values, strict=True))
+    geo = build_dataclass(GeoConfig, {"origin": raw}, "geo", source)
+    return dataclasses.replace(cfg, geo=geo)
 
 
 def dump_config(cfg: Config) -> str:

@@ -1,13 +1,15 @@
 #!/usr/bin/env python3
-"""Check that an evaluation report renders in headless Chromium: every image decoded, and a
+"""Check that an evaluation report renders in headless Chromium: every image decoded, nothing
+wider than the window (a table or figure that escapes its box would cut columns off), and a
 screenshot that is not blank.
 
     python scripts/check_report.py RUN/eval/report.html [--screenshot OUT.png]
 
 Uses the system Chromium (`chromium`, `chromium-browser` or `google-chrome` on PATH, or
 $CHROMIUM; on Debian/Ubuntu: `apt-get install chromium`). Exit 0 when the page loaded all
-its images and the screenshot has content, 1 otherwise (with the reason), 2 when no
-Chromium is found. `tests/evaluation/test_report.py` runs it (skipped without Chromium).
+its images, fits the window's width and the screenshot has content, 1 otherwise (with the
+reason), 2 when no Chromium is found. `tests/evaluation/test_report.py` runs it (skipped
+without Chromium); the same file checks the page's structure without a browser.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+WINDOW = "1280,2400"  # width, height of the headless window [px]
 
 
 def find_chromium() -> str | None:
@@ -53,7 +57,7 @@ def check(report: Path, screenshot: Path) -> tuple[bool, str]:
         return False, "no Chromium found (install chromium or set $CHROMIUM)"
     url = report.resolve().as_uri()
     with tempfile.TemporaryDirectory() as profile:
-        dom = _run(chromium, ["--dump-dom", url], profile)
+        dom = _run(chromium, [f"--window-size={WINDOW}", "--dump-dom", url], profile)
         m_loaded = re.search(r'data-images-loaded="(\d+)"', dom.stdout)
         m_total = re.search(r'data-images-total="(\d+)"', dom.stdout)
         if not (m_loaded and m_total):
@@ -61,8 +65,11 @@ def check(report: Path, screenshot: Path) -> tuple[bool, str]:
         loaded, total = int(m_loaded.group(1)), int(m_total.group(1))
         if total == 0 or loaded != total:
             return False, f"{loaded} of {total} images loaded"
+        if re.search(r'data-page-overflow="1"', dom.stdout):
+            return False, f"the page is wider than the window ({WINDOW}): something overflows"
         shot = _run(
-            chromium, [f"--screenshot={screenshot.resolve()}", "--window-size=1280,2400", url],
+            chromium,
+            [f"--screenshot={screenshot.resolve()}", f"--window-size={WINDOW}", url],
             profile,
         )
     if not screenshot.exists() or screenshot.stat().st_size == 0:

@@ -21,8 +21,9 @@ Figures comparing runs of one vehicle (errors, RMSE bars) colour by run label in
 - landmark_uncertainty (Fig. 12): landmark sigma over time, loop closures, shared landmarks
 - error_over_time (Figs. 13, 17): position error norm of several runs with their RMSE
 - feature_counts (Fig. 3's feature types): type 1/2/3 features per frame per vehicle
-- nees_over_time (consistency): NEES per vehicle with the chi-square band
-- mosaics (Figs. 19-21): the per-vehicle mosaics and the merged one
+- nees_over_time (consistency): NEES per vehicle with the chi-square band, from each
+  vehicle's first informative value
+- mosaics (Figs. 19-21): the per-vehicle mosaics and the merged one, with scale bars
 - headline_bars (summary): position RMSE per vehicle and run
 """
 
@@ -41,7 +42,9 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
+from cvslam_cli.geometry.georef import scale_bar_m
 from cvslam_cli.geometry.rotations import interpolate_positions
 from cvslam_cli.records.arrays import F64, check_increasing
 
@@ -468,11 +471,16 @@ def feature_counts(
     t0_ns: int,
     *,
     colours: Mapping[str, str] | None = None,
+    types: Sequence[str] = ("type1", "type2", "type3"),
 ) -> Figure:
     """The paper's feature types per frame (Fig. 3), one axis per vehicle (order of first
-    appearance, titled in the vehicle's colour): `ax.lines` = type 1 (re-observed, own
-    landmark), type 2 (re-observed, another vehicle's), type 3 (new) over time."""
-    _require(timeline, ("stamp_ns", "vehicle", "type1", "type2", "type3"), "timeline")
+    appearance, titled in the vehicle's colour): `ax.lines` = the `types` drawn, of type 1
+    (re-observed, own landmark), type 2 (re-observed, another vehicle's), type 3 (new),
+    over time (a lone vehicle has no type 2: leave it out)."""
+    unknown = sorted(set(types) - {c for c, _, _ in _FEATURE_TYPES})
+    if unknown or not types:
+        raise ValueError(f"feature types must be some of type1, type2, type3, got {types}")
+    _require(timeline, ("stamp_ns", "vehicle", *types), "timeline")
     rows = _vehicle_rows(timeline)
     col = _colours_for(colours, [v for v, _ in rows])
     height = FEATURES_EXTRA_IN + FEATURES_ROW_IN * max(len(rows), 1)
@@ -482,7 +490,8 @@ def feature_counts(
         for ax, (v, r) in zip(axes, rows, strict=False):
             t = _seconds(r["stamp_ns"], t0_ns)
             for column, label, c in _FEATURE_TYPES:
-                ax.plot(t, r[column].to_numpy(float), color=c, lw=1.0, label=label)
+                if column in types:
+                    ax.plot(t, r[column].to_numpy(float), color=c, lw=1.0, label=label)
             ax.set_title(v, color=col[v], fontweight="bold")
             ax.set_ylabel("features per frame")
             ax.set_ylim(bottom=0.0)
@@ -493,6 +502,16 @@ def feature_counts(
     return fig
 
 
+def first_informative(values: np.ndarray, informative_from: float | None) -> int:
+    """Index of the first finite value >= `informative_from` (0 when None or when no value
+    reaches it: then everything is shown)."""
+    if informative_from is None:
+        return 0
+    y = np.asarray(values, dtype=np.float64)
+    reached = np.flatnonzero(np.isfinite(y) & (y >= informative_from))
+    return int(reached[0]) if reached.size else 0
+
+
 def nees_over_time(
     t_s: np.ndarray | Mapping[str, np.ndarray],
     nees: Mapping[str, np.ndarray],
@@ -500,13 +519,19 @@ def nees_over_time(
     dof: int,
     *,
     colours: Mapping[str, str] | None = None,
+    informative_from: float | None = None,
 ) -> Figure:
     """The normalised estimation error squared per vehicle over time, log y axis: t_s (T,)
     seconds shared by all vehicles, or vehicle -> its own (T_v,) seconds; nees vehicle ->
     (T,) or (T_v,) (NaN where unknown); band (lower, upper) of the chi-square acceptance
     region for `dof` degrees of freedom, shaded (`ax.patches[0]`).
     `ax.lines`: one line per vehicle in `nees`' order, labelled with its share of finite
-    values inside the band, then a dotted line at the expected value `dof`."""
+    values inside the band (over all of them), then a dotted line at the expected value
+    `dof`. With `informative_from`, each vehicle's line starts at its first value at least
+    that large (`first_informative`; the label says how many were left out): a filter that
+    starts at the true pose with a small covariance has a NEES near 0 at first (1e-27 and
+    the like), which says nothing about its consistency and would stretch the log axis
+    over twenty decades."""
     lo, hi = float(band[0]), float(band[1])
     if not 0.0 < lo < hi:
         raise ValueError(f"band must be 0 < lower < upper, got {band}")
@@ -529,7 +554,11 @@ def nees_over_time(
                 raise ValueError(f"nees[{v!r}]: shape {y.shape}, t_s has {t.shape}")
             ok = np.isfinite(y)
             share = f"{np.mean((y[ok] >= lo) & (y[ok] <= hi)):.0%} in band" if ok.any() else "none"
-            ax.plot(t, y, color=col[v], lw=1.0, label=f"{v} ({share})")
+            k = first_informative(y, informative_from)
+            skipped = (
+                f"; {k} first pose{'s' * (k > 1)} < {informative_from:.2g} not drawn" if k else ""
+            )
+            ax.plot(t[k:], y[k:], color=col[v], lw=1.0, label=f"{v} ({share}{skipped})")
         ax.axhline(dof, color="#444444", ls=":", lw=1.0, label=f"expected value {dof}")
         ax.set_yscale("log")
         ax.set_xlabel(_TIME_LABEL)
@@ -552,11 +581,17 @@ def _rgb_image(name: str, image: np.ndarray) -> np.ndarray:
     return img[..., [2, 1, 0, 3]] if img.shape[2] == 4 else img[..., ::-1]
 
 
-def mosaics(images: dict[str, np.ndarray], *, merged: str) -> Figure:
+def mosaics(
+    images: dict[str, np.ndarray], *, merged: str, gsd_m: Mapping[str, float] | None = None
+) -> Figure:
     """Paper Figs. 19-21: the mosaics side by side in `images`' order (north up), one axis
     each titled with its name (`merged` names the merged mosaic). Images are uint8 grey,
-    BGR, or BGRA whose alpha marks no-data (shown transparent, on the white figure)."""
+    BGR, or BGRA whose alpha marks no-data (shown transparent, on the white figure).
+    `gsd_m`: metres per pixel of the images given (after any resizing); each of those gets
+    a scale bar (`ax.artists[0]`, an `AnchoredSizeBar` of a round length, about a quarter
+    of its width, in the lower left corner)."""
     n = max(len(images), 1)
+    gsd_m = gsd_m or {}
     with _style():
         fig = _figure((MOSAIC_PANEL_IN[0] * n, MOSAIC_PANEL_IN[1]))
         axes = fig.subplots(1, n, squeeze=False)[0]
@@ -569,7 +604,30 @@ def mosaics(images: dict[str, np.ndarray], *, merged: str) -> Figure:
             title = "all vehicles (merged)" if name == merged else name
             ax.set_title(f"{title}  ({img.shape[1]} x {img.shape[0]} px, north up)")
             ax.set_axis_off()
+            if name in gsd_m:
+                _scale_bar(ax, img.shape[1], float(gsd_m[name]))
     return fig
+
+
+def _scale_bar(ax: Axes, width_px: int, gsd_m: float) -> None:
+    """A scale bar on an image axis (data units = pixels) of `gsd_m` metres per pixel."""
+    if not (np.isfinite(gsd_m) and gsd_m > 0):
+        raise ValueError(f"mosaic scale: need metres per pixel > 0, got {gsd_m}")
+    length_m = scale_bar_m(width_px * gsd_m)
+    bar = AnchoredSizeBar(
+        ax.transData,
+        length_m / gsd_m,
+        f"{length_m:g} m",
+        "lower left",
+        pad=0.4,
+        borderpad=0.6,
+        sep=3,
+        color="black",
+        frameon=True,
+        size_vertical=max(1.0, width_px / 150.0),
+    )
+    bar.patch.set_alpha(0.8)
+    ax.add_artist(bar)
 
 
 def headline_bars(table: pd.DataFrame) -> Figure:

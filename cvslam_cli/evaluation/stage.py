@@ -49,6 +49,7 @@ from cvslam_cli.io.logs import (
     open_logs,
     with_run_bindings,
 )
+from cvslam_cli.io.mosaic_files import read_world_file
 from cvslam_cli.io.run_layout import (
     DEADRECKONING,
     EVAL,
@@ -78,6 +79,9 @@ RUN_LABELS = {
     FUSE_EKF_SINGLE: "single EKF",
 }
 DR_LABEL = "dead reckoning"
+# the NEES figure starts each line at the first pose whose NEES a consistent filter exceeds
+# with probability 1 - this (the chi-square lower quantile)
+NEES_UNINFORMATIVE_P = 0.001
 
 
 @dataclass(frozen=True)
@@ -375,10 +379,17 @@ def _position_figures(
 
 
 def _map_and_timeline_figures(
-    fuse: FuseFolder, by: _Estimates, truth: dict[str, PoseTable], main_run: str | None, t0_ns: int
+    fuse: FuseFolder,
+    by: _Estimates,
+    truth: dict[str, PoseTable],
+    main_run: str | None,
+    t0_ns: int,
+    fleet: list[str],
 ) -> Iterator[_Figure]:
     """The map from above (with the main run), the landmark uncertainty and the feature
-    counts over time from `fuse`'s timeline and events."""
+    counts over time from `fuse`'s timeline and events (for a lone vehicle, without what
+    only a team has: other vehicles' landmarks, type 2)."""
+    alone = len(fleet) == 1
     vehicles = sorted(truth)
     if main_run and fuse.map_csv.exists():
         table = read_map_csv(fuse.map_csv)
@@ -399,25 +410,29 @@ def _map_and_timeline_figures(
             "landmark_uncertainty",
             "Landmark uncertainty over time (paper Fig. 12)",
             "RMS standard deviation of the landmarks updated in each frame; loop closures "
-            "(lines) and re-observations of other vehicles' landmarks (type 2, shaded).",
-        )
+            + ("(lines)." if alone else "(lines) and re-observations of other vehicles' "
+               "landmarks (type 2, shaded)."),
+        )  # fmt: skip
         yield (
-            figs.feature_counts(timeline, t0_ns),
+            figs.feature_counts(
+                timeline, t0_ns, types=("type1", "type3") if alone else ("type1", "type2", "type3")
+            ),
             "feature_counts",
             "Features per frame by type",
-            "Type 1: re-observations of the vehicle's own landmarks; type 2: landmarks mapped "
-            "by another vehicle; type 3: new landmarks.",
+            "Type 1: re-observations of the vehicle's own landmarks; "
+            + ("" if alone else "type 2: landmarks mapped by another vehicle; ")
+            + "type 3: new landmarks.",
         )
 
 
 def _comparison_figures(
-    by: _Estimates, truth: dict[str, PoseTable], t0_ns: int
+    by: _Estimates, truth: dict[str, PoseTable], t0_ns: int, fleet: list[str]
 ) -> Iterator[_Figure]:
-    """Position errors of runs compared, where both runs of a pair were made."""
-    pairs = [
-        (FUSE_SINGLE, FUSE, "single vs cooperative (paper Fig. 13/17)", "coop"),
-        (FUSE_EKF, FUSE, "EKF vs NH-infinity", "filters"),
-    ]
+    """Position errors of runs compared, where both runs of a pair were made; single vs
+    cooperative only for a team (a lone vehicle's two runs are the same filter)."""
+    pairs = [(FUSE_EKF, FUSE, "EKF vs NH-infinity", "filters")]
+    if len(fleet) > 1:
+        pairs.insert(0, (FUSE_SINGLE, FUSE, "single vs cooperative (paper Fig. 13/17)", "coop"))
     for v in sorted(truth):
         for a, b, what, tag in pairs:
             ests = [by[(r, v)] for r in (a, b, DEADRECKONING) if (r, v) in by]
@@ -446,41 +461,57 @@ def _nees_figure(
     nees = {v: n for v, (_, n, _) in main_nees.items()}
     if nees:
         dof = max(d for _, _, d in main_nees.values())  # 2 for a team of ground robots
+        # a consistent filter's NEES is below this 0.1 % of the time: values below it
+        # before the first one above are the start at the truth, not information
+        informative = mtr.nees_chi2_band(dof, 1, 1.0 - 2 * NEES_UNINFORMATIVE_P)[0]
         yield (
             figs.nees_over_time(
-                nees_t,
-                nees,
-                _nees_band(cfg, dof),
-                dof,
+                nees_t, nees, _nees_band(cfg, dof), dof, informative_from=informative
             ),
             "nees",
             "Position NEES over time",
             "Normalised estimation error squared of each vehicle's position "
             f"({RUN_LABELS[main_run]}) and the {100 * cfg.nees_band_probability:.0f} % "
-            f"chi-square band ({dof} dof): a consistent filter stays inside it.",
+            f"chi-square band ({dof} dof): a consistent filter stays inside it. Each line "
+            f"starts at the vehicle's first pose whose NEES reaches {informative:.2g} (the "
+            f"{100 * NEES_UNINFORMATIVE_P:.1f} % quantile of the chi-square distribution): "
+            "the filter starts at the true pose with a small covariance, so its first NEES "
+            "values are near 0 and say nothing about consistency (the legend says how many "
+            "poses that leaves out; the tables count every pose).",
         )
 
 
-def _mosaic_figure(mosaic: MosaicFolder, vehicles: list[str]) -> Iterator[_Figure]:
-    """The fused mosaics of every vehicle and the merged one, at most 1200 px each."""
+def _mosaic_figure(mosaic: MosaicFolder, fleet: list[str]) -> Iterator[_Figure]:
+    """The fused mosaics of every vehicle and the merged one (a lone vehicle's only: the
+    merged one is the same), at most 1200 px each, with scale bars from their world files."""
     if not mosaic.path.is_dir():
         return
-    images = {}
-    for name in [*vehicles, MERGED_MOSAIC]:
+    images, gsd_m = {}, {}
+    for name in [*fleet, MERGED_MOSAIC] if len(fleet) > 1 else fleet:
         p = mosaic.image(name)
         if p.exists():
             img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            width = img.shape[1]
             scale = 1200.0 / max(img.shape[:2])
             if scale < 1:
                 img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             images[name] = img
+            if mosaic.world_file(name).exists():  # metres per pixel: the length of (A, D)
+                a, d = read_world_file(mosaic.world_file(name))[:2]
+                gsd_m[name] = float(np.hypot(a, d)) * width / img.shape[1]
     if images:
+        team = len(fleet) > 1
         yield (
-            figs.mosaics(images, merged=MERGED_MOSAIC),
+            figs.mosaics(images, merged=MERGED_MOSAIC, gsd_m=gsd_m),
             "mosaics",
             "Ground mosaics (paper Figs. 19-21)",
-            "Each vehicle's mosaic from its fused poses and the merged one: the team covers "
-            "more ground than any one vehicle (docs/mosaic.md).",
+            (
+                "Each vehicle's mosaic from its fused poses and the merged one: the team covers "
+                "more ground than any one vehicle"
+                if team
+                else "The vehicle's mosaic from its fused poses"
+            )
+            + "; north up, scale bar in metres (docs/mosaic.md).",
         )
 
 
@@ -500,13 +531,15 @@ def _figures(
     by = {(e.run, e.vehicle): e for e in estimates}
     main_run = next((r for r in RUN_LABELS if any(k[0] == r for k in by)), None)
     vehicles = sorted(truth)
+    main = layout.fuse(main_run or FUSE)
+    fleet = main.vehicles() if main.has_trajectories() else vehicles  # the team, truth or not
     made = itertools.chain(
         _headline_figure(headline, cfg),
         _position_figures(by, truth, main_run, t0_ns),
-        _map_and_timeline_figures(layout.fuse(main_run or FUSE), by, truth, main_run, t0_ns),
-        _comparison_figures(by, truth, t0_ns),
+        _map_and_timeline_figures(main, by, truth, main_run, t0_ns, fleet),
+        _comparison_figures(by, truth, t0_ns, fleet),
         _nees_figure(nees_of, vehicles, main_run, t0_ns, cfg),
-        _mosaic_figure(layout.mosaic(), vehicles),
+        _mosaic_figure(layout.mosaic(), fleet),
     )
     entries: list[FigureEntry] = []
     for fig, name, title, caption in made:
@@ -568,15 +601,20 @@ def _report_html(
     entries: list[FigureEntry],
     provenance: dict[str, str],
 ) -> str:
+    dataset = cfg.run.dataset or run_dir.resolve().name
     return render_report(
         title=f"cvslam evaluation: {run_dir.name}",
-        subtitle=f"{n_vehicles} vehicle(s), estimates: "
+        subtitle=f"dataset {dataset}; {n_vehicles} vehicle(s), estimates: "
         + ", ".join(dict.fromkeys(e.label for e in estimates)),
         headline=headline,
         headline_note="ATE RMSE in metres against the ground truth "
         f"({'no alignment' if cfg.eval.align == 'none' else cfg.eval.align + ' alignment'}).",
         figures=entries,
-        metrics=metrics.set_index("vehicle"),
+        # one row per (vehicle, estimate); the run folder, dataset and run directory are
+        # the same for every row of the report (and in metrics.csv)
+        metrics=metrics.drop(columns=["run", "dataset", "run_dir"])
+        .astype({c: "Int64" for c in ("nees_dof",) if c in metrics})  # a count, or none
+        .set_index(["vehicle", "estimate"]),
         config_yaml=dump_config(cfg),
         provenance=provenance,
     )

@@ -135,7 +135,8 @@ class FuseFolder:
 @dataclass(frozen=True)
 class MosaicFolder:
     """The outputs of one `cvslam mosaic` run (docs/mosaic.md): per vehicle and for
-    `MERGED_MOSAIC` an image, its world file and an overlay."""
+    `MERGED_MOSAIC` an image, its world file, its GeoTIFF, and an overlay with its world
+    file."""
 
     path: Path
 
@@ -151,6 +152,12 @@ class MosaicFolder:
 
     def overlay(self, name: str) -> Path:
         return self.path / f"{name}_overlay.png"
+
+    def overlay_world_file(self, name: str) -> Path:
+        return self.path / f"{name}_overlay.pgw"
+
+    def geotiff(self, name: str) -> Path:
+        return self.path / f"{name}.tif"
 
     def pngs(self) -> list[Path]:
         """Every PNG in the folder (images and overlays), sorted; none without the folder."""

@@ -11,9 +11,12 @@ from), the trajectories and landmark map of `<run>/<fuse_dir>/`, the images from
    every warped image is fed to its vehicle's blender and the merged one unchanged.
 3. One pass over the logs: each selected left image is warped and fed (`blend.py`).
 4. Written to `<run>/mosaic*/` as a whole folder, atomically (`io/atomic.py`): `<vehicle>.png`,
-   `all.png` (BGRA, alpha 0 where no image fell) with world files, `*_overlay.png` with the
-   trajectories and landmarks. The summary in run.yaml gives images used, size, covered
-   area per mosaic, and, for a simulated run, the alignment with the true ground texture.
+   `all.png` (BGRA, alpha 0 where no image fell) with world files and their CRS, the same
+   as GeoTIFFs (`.tif`), `*_overlay.png` with the trajectories, landmarks and a scale bar
+   (and world files). The map is the nav frame's east/north (a local engineering CRS) or,
+   with `geo.origin`, UTM (`geometry/georef.py`). The summary in run.yaml gives the map's
+   CRS, images used, size, covered area per mosaic, and, for a simulated run, the alignment
+   with the true ground texture.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from tqdm import tqdm
 from cvslam_cli.config import Config, MosaicConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.geometry.camera import CameraModel
+from cvslam_cli.geometry.georef import MapPlacement, local_placement, scale_bar_m, utm_placement
 from cvslam_cli.geometry.rotations import interpolate_poses, quat_xyzw_to_matrix
 from cvslam_cli.io.atomic import atomic_dir, check_writable
 from cvslam_cli.io.features_file import feature_frame_index
@@ -46,7 +50,13 @@ from cvslam_cli.io.logs import (
     require_logs,
     with_run_bindings,
 )
-from cvslam_cli.io.mosaic_files import load_true_ground, write_png_atomic, write_world_file
+from cvslam_cli.io.mosaic_files import (
+    load_true_ground,
+    write_crs_sidecar,
+    write_geotiff_atomic,
+    write_png_atomic,
+    write_world_file,
+)
 from cvslam_cli.io.run_layout import (
     MERGED_MOSAIC,
     FuseFolder,
@@ -191,11 +201,39 @@ def _overlay(
         r, c = sub.pixel_of(pts[:, 0], pts[:, 1])
         poly = np.round(np.c_[c, r] * scale).astype(np.int32)
         cv2.polylines(bgr, [poly], False, colour, max(2, bgr.shape[1] // 800), cv2.LINE_AA, 4)
-        fs = max(0.6, bgr.shape[1] / 1600.0)  # legend readable at any mosaic size
+        fs = _font_scale(bgr)
         org = (int(12 * fs), int(32 * fs * (i + 1)))
         thick = max(1, round(2 * fs))
         cv2.putText(bgr, v, org, cv2.FONT_HERSHEY_SIMPLEX, fs, colour, thick, cv2.LINE_AA)
+    _scale_bar(bgr, grid.gsd_m)
     return bgr
+
+
+def _font_scale(bgr: np.ndarray) -> float:
+    """OpenCV font scale of the overlay's text: readable at any mosaic size."""
+    return max(0.6, bgr.shape[1] / 1600.0)
+
+
+def _scale_bar(bgr: np.ndarray, gsd_m: float) -> None:
+    """A scale bar (a round length, about a quarter of the width) drawn in the bottom left
+    corner of `bgr` in place: white on a black outline, labelled in metres."""
+    h, w = bgr.shape[:2]
+    length_m = scale_bar_m(w * gsd_m)
+    length_px = round(length_m / gsd_m)
+    fs = _font_scale(bgr)
+    thick = max(1, round(2 * fs))
+    bar_h = max(4, round(8 * fs))
+    x0, y1 = round(12 * fs), h - round(12 * fs)
+    label = f"{length_m:g} m"
+    (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, fs, thick)
+    org = (x0 + max(0, (length_px - tw) // 2), y1 - bar_h - round(8 * fs))
+    for colour, grow in (((0, 0, 0), 2), ((255, 255, 255), 0)):
+        cv2.rectangle(
+            bgr, (x0 - grow, y1 - bar_h - grow), (x0 + length_px + grow, y1 + grow), colour, -1
+        )
+        cv2.putText(
+            bgr, label, org, cv2.FONT_HERSHEY_SIMPLEX, fs, colour, thick + grow, cv2.LINE_AA
+        )
 
 
 # --------------------------------------------------------------------------- stage
@@ -432,6 +470,30 @@ def _blended(
     return results
 
 
+def _placement(cfg: Config, grid: CanvasGrid, ground: GroundModel) -> MapPlacement:
+    """Where the mosaics lie on a map: the nav frame's east/north (local CRS) or, with
+    geo.origin, UTM fitted over the whole canvas (so every mosaic is placed alike), at the
+    height of the ground at its centre."""
+    o = cfg.geo.origin
+    if o is None:
+        return local_placement()
+    box = grid.box_ne()
+    up_m = -float(ground.z_at(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3])))
+    placement = utm_placement(
+        o.lat_deg, o.lon_deg, o.alt_m, o.heading_deg, (box[0], box[1], box[2], box[3]), up_m
+    )
+    if placement.max_fit_error_m > 0.5 * grid.gsd_m:
+        log.warning(
+            "mosaic: over %.0f x %.0f m the UTM map (an affine) is up to %.2f m off the exact "
+            "projection of the nav frame, more than half a pixel (%.3g m)",
+            box[2] - box[0],
+            box[3] - box[1],
+            placement.max_fit_error_m,
+            grid.gsd_m,
+        )
+    return placement
+
+
 def _write_mosaics(
     out: MosaicFolder,
     results: dict[str, tuple[Blended, CanvasGrid, int]],
@@ -440,20 +502,27 @@ def _write_mosaics(
     truth: Any,
     gsd: float,
     overlay: bool,
+    placement: MapPlacement,
 ) -> dict[str, MosaicInfo]:
-    """Each mosaic's image, world file and (with `overlay`) the tracks and landmarks drawn
-    on it; what each covers and, for a simulated run, how it aligns with the true ground."""
+    """Each mosaic's image, world file, CRS and GeoTIFF and (with `overlay`) the tracks,
+    landmarks and a scale bar drawn on it; what each covers and, for a simulated run, how it
+    aligns with the true ground."""
     observers = [set(o.split(";")) for o in table.observers]
     lm_of = {v: table.p_nav_m[np.array([v in o for o in observers], bool)] for v in tracks}
     infos: dict[str, MosaicInfo] = {}
     for n, (b, g, count) in results.items():
         sub = g.sub((*b.offset_rc, *b.mask.shape))
+        transform = placement.raster_transform(sub.n_max, sub.e_min, sub.gsd_m)
         write_png_atomic(out.image(n), b.image, b.mask)
-        write_world_file(out.world_file(n), sub.n_max, sub.e_min, sub.gsd_m)
+        write_world_file(out.world_file(n), transform)
+        write_crs_sidecar(out.image(n), placement.crs_wkt)
+        write_geotiff_atomic(out.geotiff(n), b.image, b.mask, transform, placement.crs_wkt)
         if overlay:
             sel = tracks if n == MERGED_MOSAIC else {n: tracks[n]}
             lms = lm_of if n == MERGED_MOSAIC else {n: lm_of[n]}
             write_png_atomic(out.overlay(n), _overlay(b, g, sel, lms), None)
+            write_world_file(out.overlay_world_file(n), transform)
+            write_crs_sidecar(out.overlay(n), placement.crs_wkt)
         truth_info = None
         if truth is not None:
             ref, ref_ok = resample_reference(truth[0], truth[1], truth[2], sub)
@@ -469,13 +538,17 @@ def _write_mosaics(
 
 
 def _record_summary(
-    summary: MosaicSummary, grid: CanvasGrid, ground: GroundModel
+    summary: MosaicSummary, grid: CanvasGrid, ground: GroundModel, placement: MapPlacement
 ) -> dict[str, Any]:
     """The mosaic run's summary in run.yaml."""
     return {
         "source": summary.source,
         "gsd_m": summary.gsd_m,
         "canvas_px": [grid.shape[1], grid.shape[0]],
+        "map": {
+            "crs": placement.crs_name,
+            "max_fit_error_m": round(placement.max_fit_error_m, 4),
+        },
         "ground": {
             "landmarks": ground.points,
             "inliers": ground.inliers,
@@ -511,9 +584,16 @@ def run(
     fuse = layout.fuse(mc.fuse_dir)
     traj_files = _fuse_inputs(fuse, vehicles, mc.source)
     out = layout.mosaic(mosaic_name(mc.source))
-    outputs = [p for n in [*vehicles, MERGED_MOSAIC] for p in (out.image(n), out.world_file(n))]
+    outputs = [
+        p
+        for n in [*vehicles, MERGED_MOSAIC]
+        for p in (out.image(n), out.world_file(n), out.geotiff(n))
+    ]
     inputs = [*logs_used, fuse.map_csv, *traj_files.values()]
-    plan = rd.plan(out.name, cfg, ("mosaic",), inputs, outputs, force)
+    # geo.origin is part of the stage's config where it is set (so a run made without it,
+    # before the key existed too, is not "another config")
+    sections = ("mosaic", "geo.origin") if cfg.geo.origin is not None else ("mosaic",)
+    plan = rd.plan(out.name, cfg, sections, inputs, outputs, force)
     if plan.action == "skip":
         log.info("mosaic: %s is up to date (same config and inputs); --force to redo it", out.path)
         return MosaicSummary(run_dir, out.path, True, mc.source)
@@ -532,10 +612,13 @@ def run(
     fed, t_fed = _feed_images(logs, frames, scene, comps, merged, progress)
 
     truth = _true_ground(run_dir, logs_used)
+    placement = _placement(cfg, grid, ground)
     with atomic_dir(out.path) as tmp:
         tracks = {v: tables[v].p_nav_m for v in sorted(comps)}
         results = _blended(comps, merged, scene)
-        infos = _write_mosaics(MosaicFolder(tmp), results, tracks, table, truth, gsd, mc.overlay)
+        infos = _write_mosaics(
+            MosaicFolder(tmp), results, tracks, table, truth, gsd, mc.overlay, placement
+        )
     union = _union_coverage(results, grid, scene.sub_rois) if merged is not None else 1.0
     wall = time.perf_counter() - t_start
     summary = MosaicSummary(
@@ -550,7 +633,7 @@ def run(
         images_per_s=fed / t_fed if t_fed > 0 else float("nan"),
         wall_s=wall,
     )
-    rd.record(out.name, plan, outputs, _record_summary(summary, grid, ground), wall)
+    rd.record(out.name, plan, outputs, _record_summary(summary, grid, ground, placement), wall)
     return summary
 
 

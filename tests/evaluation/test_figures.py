@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from cvslam_cli.evaluation import figures as figs
 from cvslam_cli.evaluation.figures import Series
@@ -321,7 +322,55 @@ def test_nees_band_log_axis_and_share_in_band() -> None:
         figs.nees_over_time(t, nees, (9.0, 0.5), 3)
 
 
+def test_nees_lines_start_at_the_first_informative_value() -> None:
+    """A filter started at the truth: NEES 1e-27, 1e-9 ... then ordinary values. With
+    `informative_from` the line starts at the first value reaching it (later small ones
+    stay), the label says how many were left out and the share in band counts them all; a
+    series that never reaches it is drawn whole."""
+    t = np.arange(8.0)
+    start = np.array([1e-27, 1e-9, np.nan, 2.0, 0.001, 3.0, 1.0, 4.0])
+    never = np.full(8, 1e-3)
+    fig = figs.nees_over_time(
+        t, {"uav1": start, "uav2": never}, (0.5, 9.0), 3, informative_from=0.024
+    )
+    (ax,) = fig.axes
+    np.testing.assert_array_equal(ax.lines[0].get_xdata(), t[3:])
+    np.testing.assert_array_equal(ax.lines[0].get_ydata(), start[3:])  # 0.001 later: kept
+    assert ax.lines[0].get_label() == "uav1 (57% in band; 3 first poses < 0.024 not drawn)"
+    np.testing.assert_array_equal(ax.lines[1].get_ydata(), never)
+    assert ax.lines[1].get_label() == "uav2 (0% in band)"
+    fig.canvas.draw()
+    assert ax.get_ylim()[0] > 1e-5  # the axis no longer reaches down to 1e-27
+    rendered(fig)
+    assert figs.first_informative(start, None) == 0
+    assert figs.first_informative(start, 2.5) == 5
+
+
+def test_feature_counts_of_chosen_types() -> None:
+    tl = timeline_frame()
+    fig = figs.feature_counts(tl, T0_NS, types=("type1", "type3"))
+    labels = [line.get_label() for line in fig.axes[0].lines]
+    assert len(labels) == 2 and labels[0].startswith("type 1") and labels[1].startswith("type 3")
+    with pytest.raises(ValueError, match="feature types"):
+        figs.feature_counts(tl, T0_NS, types=("type4",))
+
+
 # --------------------------------------------------------------------------- Figs. 19-21
+
+
+def test_mosaics_scale_bar_is_a_round_length_in_pixels_of_the_gsd() -> None:
+    grey = np.full((40, 300), 128, np.uint8)
+    fig = figs.mosaics({"uav1": grey, "all": grey}, merged="all", gsd_m={"uav1": 0.5})
+    bar_ax, plain_ax = fig.axes
+    (bar,) = [a for a in bar_ax.artists if isinstance(a, AnchoredSizeBar)]
+    assert not plain_ax.artists  # no GSD given: no bar
+    # 300 px x 0.5 m = 150 m wide: a 20 m bar (largest 1/2/5 x 10^k <= a quarter), 40 px
+    (rect,) = bar.size_bar.get_children()  # in data units: pixels
+    assert rect.get_width() == pytest.approx(40.0)
+    assert bar.txt_label.get_text() == "20 m"
+    rendered(fig)
+    with pytest.raises(ValueError, match="metres per pixel"):
+        figs.mosaics({"uav1": grey}, merged="all", gsd_m={"uav1": 0.0})
 
 
 def test_mosaics_convert_colours_and_keep_transparency() -> None:

@@ -7,6 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import pytest
@@ -72,6 +73,11 @@ def test_eval_writes_metrics_figures_and_report(compared_run, tmp_path, cvslam):
     assert {"error_coop_uav1", "error_filters_uav2", "feature_counts"} <= figs
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") == len(figs)
+    # the metrics in one table per family, the config folded away
+    for group in ("Absolute trajectory error", "Relative pose error", "Consistency: position NEES"):
+        assert f"<h3>{group}" in html
+    assert html.count("<details>") == 1 and "<summary>The resolved config" in html
+    assert "first pose whose NEES reaches" in html  # the NEES caption says where lines start
     # rerun: skipped; --align sim3 is another config
     res = cvslam("eval", run)
     assert res.code == 0 and "up to date" in res.err
@@ -116,6 +122,30 @@ def test_ground_truth_from_files(compared_run, tmp_path, cvslam):
     res = cvslam("eval", run, "--gt", f"uav1={gt / 'late.tum'}", "--force")
     assert res.code == 1 and "Traceback" not in res.err
     assert "fuse/uav1.tum" in res.err and "late.tum" in res.err and "timestamps" in res.err
+
+
+def test_one_vehicle_report_leaves_out_what_only_a_team_has(small_image_run, tmp_path, cvslam):
+    """uav1 alone (its features only), fused alone and "single": the two runs are the same
+    filter, so no single-vs-cooperative figure; no type-2 line or caption, one mosaic panel
+    (the merged mosaic is the same), with its scale bar."""
+    from cvslam_cli.evaluation import figures as figs
+
+    run = tmp_path / "run"
+    shutil.copytree(small_image_run, run, ignore=shutil.ignore_patterns("fuse", "uav2.npz"))
+    for args in ([], ["--single"]):
+        _ok(cvslam("-q", "fuse", run, *args))
+    _ok(cvslam("-q", "mosaic", run, "--gsd", "1.0", "--set", "mosaic.every_nth=4"))
+    _ok(cvslam("-q", "eval", run))
+    out = run / "eval"
+    names = {p.stem for p in (out / "figures").glob("*.png")}
+    assert {"headline", "position_uav1", "feature_counts", "nees", "mosaics"} <= names
+    assert not any(n.startswith("error_coop") for n in names)
+    html = (out / "report.html").read_text()
+    assert "single vs cooperative" not in html and "type 2" not in html
+    assert "other vehicles" not in html and "merged" not in html
+    mosaic_png = cv2.imread(str(out / "figures" / "mosaics.png"))
+    assert mosaic_png.shape[1] == round(figs.MOSAIC_PANEL_IN[0] * figs.DPI)  # one panel
+    assert "1 vehicle(s)" in html
 
 
 def test_eval_needs_a_fuse_run(tmp_path, cvslam):
