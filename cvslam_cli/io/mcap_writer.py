@@ -88,6 +88,37 @@ def path_fields(
     }
 
 
+def pose_with_covariance_fields(
+    stamp_ns: int, p_m: Any, q_xyzw: Any, cov: Any, frame_id: str
+) -> dict[str, Any]:
+    """geometry_msgs/msg/PoseWithCovarianceStamped fields; `cov` (6, 6) row-major."""
+    return {
+        "header": header(stamp_ns, frame_id),
+        "pose": {
+            "pose": {"position": _vec(p_m), "orientation": _quat(q_xyzw)},
+            "covariance": [float(v) for v in np.asarray(cov, dtype=float).reshape(36)],
+        },
+    }
+
+
+def tf_message_fields(stamp_ns: int, transforms: list[tuple[str, str, Any]]) -> dict[str, Any]:
+    """tf2_msgs/msg/TFMessage fields: `transforms` (parent_frame, child_frame,
+    T_parent_child 4x4), all stamped `stamp_ns`."""
+    return {
+        "transforms": [
+            {
+                "header": header(stamp_ns, parent),
+                "child_frame_id": child,
+                "transform": {
+                    "translation": _vec(np.asarray(T)[:3, 3]),
+                    "rotation": _quat(matrix_to_quat_xyzw(np.asarray(T)[:3, :3])),
+                },
+            }
+            for parent, child, T in transforms
+        ]
+    }
+
+
 # sensor_msgs/msg/PointField datatype constants by NumPy dtype
 POINT_FIELD_DATATYPES: dict[np.dtype[Any], int] = {
     np.dtype("<i1"): 1,
@@ -366,22 +397,7 @@ class LogWriter(AtomicWriter):
     ) -> None:
         """`transforms`: (parent_frame, child_frame, T_parent_child 4x4)."""
         self.write(
-            topic,
-            "tf2_msgs/msg/TFMessage",
-            {
-                "transforms": [
-                    {
-                        "header": header(stamp_ns, parent),
-                        "child_frame_id": child,
-                        "transform": {
-                            "translation": _vec(T[:3, 3]),
-                            "rotation": _quat(matrix_to_quat_xyzw(T[:3, :3])),
-                        },
-                    }
-                    for parent, child, T in transforms
-                ]
-            },
-            stamp_ns,
+            topic, "tf2_msgs/msg/TFMessage", tf_message_fields(stamp_ns, transforms), stamp_ns
         )
 
     def write_path(
