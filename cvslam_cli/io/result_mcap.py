@@ -33,7 +33,7 @@ from cvslam_cli.geometry.rotations import make_T, quat_xyzw_to_matrix
 from cvslam_cli.io.fuse_files import OBSERVER_SEPARATOR, map_vertices
 from cvslam_cli.io.mcap_writer import (
     LogWriter,
-    path_fields,
+    path_cdr,
     point_cloud2_fields,
     pose_with_covariance_fields,
     tf_message_fields,
@@ -108,9 +108,10 @@ def thinned(n: int, most: int) -> I64:
     return np.unique(np.round(np.linspace(0, n - 1, most)).astype(np.int64))
 
 
-# a message to write: (stamp_ns, order among messages of one stamp, topic, type, fields);
-# the fields are made when written, so that the events of a long run stay small
-_Event = tuple[int, int, str, str, Callable[[], dict[str, Any]]]
+# a message to write: (stamp_ns, order among messages of one stamp, topic, type, payload):
+# the payload (message fields, or CDR bytes) is made when written, so that the events of a
+# long run stay small
+_Event = tuple[int, int, str, str, Callable[[], dict[str, Any] | bytes]]
 
 
 def _growing_paths(
@@ -128,15 +129,15 @@ def _growing_paths(
             continue
         shown = n
         idx = thinned(n, most)
-        fields = partial(
-            path_fields,
+        payload = partial(
+            path_cdr,
             t,
+            frame_id,
             table.stamps_ns[idx],
             table.p_nav_m[idx],
             table.q_nav_body_xyzw[idx],
-            frame_id,
         )
-        yield t, 3, topic, "nav_msgs/msg/Path", fields
+        yield t, 3, topic, "nav_msgs/msg/Path", payload
 
 
 def _tf_fields(t: int, parent: str, child: str, p: F64, q: F64) -> dict[str, Any]:
@@ -289,6 +290,10 @@ def write_result_mcap(
         **{str(k): str(v) for k, v in (metadata or {}).items()},
     }
     with LogWriter(path) as w:
-        for t, _, topic, datatype, fields in events:
-            w.write(topic, datatype, fields(), t)
+        for t, _, topic, datatype, make in events:
+            payload = make()
+            if isinstance(payload, bytes):
+                w.write_raw(topic, datatype, payload, t)
+            else:
+                w.write(topic, datatype, payload, t)
         w.add_metadata(RESULT_METADATA_NAME, info)
