@@ -349,3 +349,20 @@ def test_the_fuse_stage_writes_truth_rigs_and_covariances(small_image_run):
         "nav",
         *(f"{v}/{s}_camera_optical" for v in ("uav1", "uav2") for s in ("left", "right")),
     }
+
+
+def test_the_foxglove_layout_in_docs_names_topics_and_frames_a_run_has(small_image_run):
+    """docs/foxglove_layout.json (two UAVs, the demo's names) against a two-UAV run."""
+    import json
+
+    layout = json.loads((Path(__file__).parents[2] / "docs" / "foxglove_layout.json").read_text())
+    msgs, schemas, _ = read_mcap(small_image_run / "fuse" / "result.mcap")
+    panel = layout["configById"]["3D!cvslam"]
+    assert panel["followTf"] == "enu" and set(panel["topics"]) <= set(schemas)
+    frames = {"nav", "enu"} | {
+        x.child_frame_id for t in ("/tf", "/tf_static") for _, m in msgs[t] for x in m.transforms
+    }
+    assert {k.removeprefix("frame:") for k in panel["transforms"]} <= frames
+    plotted = {p["value"].split(".")[0] for p in layout["configById"]["Plot!cvslam"]["paths"]}
+    assert plotted <= set(schemas)
+    assert set(layout["layout"].values()) >= {"3D!cvslam", "Plot!cvslam"}
