@@ -73,10 +73,13 @@ def _source_folder(layout: RunLayout, source: str) -> FuseFolder:
 
 
 def _run_logs(cfg: Config, layout: RunLayout, log_paths: Sequence[Path]) -> list[Path]:
-    """The logs the run's features came from (or `log_paths`), with the recorded bindings."""
-    _, metas = feature_frame_index(layout.root)
+    """`log_paths`, else the logs the run's features came from, with the logs bound to
+    vehicles (the config's and those extract recorded)."""
     logs_cfg = with_run_bindings(cfg.logs, layout.root)
-    return all_log_paths(list(log_paths) or layout.find_logs(metas), logs_cfg)
+    if not log_paths:
+        _, metas = feature_frame_index(layout.root)
+        log_paths = layout.find_logs(metas)
+    return all_log_paths(list(log_paths), logs_cfg)
 
 
 def _in_dataset_frames(

@@ -172,3 +172,36 @@ def test_kitti_tum_export_is_the_same_poses_with_stamps(kitti_a):
     np.testing.assert_array_equal(tum.stamps_ns, kitti.stamps_ns)
     np.testing.assert_allclose(as_T(tum), as_T(kitti), atol=1e-8)
     np.testing.assert_array_equal(tum.stamps_ns, read_tum(run / "fuse" / "car.tum").stamps_ns)
+
+
+def test_euroc_dataset_frame_through_evo(shared_data, tmp_path, cvslam):
+    """EuRoC micro imported; an estimate equal to the log's ground truth (nav frame) exported
+    in the dataset frame (IMU in the Vicon world) reads with evo's EuRoC reader and matches
+    the dataset's own ground truth to rounding."""
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    from cvslam_cli.config import load_config
+    from cvslam_cli.io.logs import ground_truth_tables, open_logs
+
+    mav0 = shared_data / "euroc_v101_micro" / "mav0"
+    if not mav0.is_dir():
+        pytest.skip(f"{mav0} not found")
+    run, log = tmp_path / "run", tmp_path / "uav1.mcap"
+    assert cvslam("-q", "import", "euroc", mav0, "--vehicle", "uav1", "-o", log).code == 0
+    truth_nav = ground_truth_tables(open_logs([log], load_config().logs), ["uav1"])["uav1"]
+    write_tum(RunLayout(run).fuse().trajectory("uav1"), truth_nav)
+    r = cvslam("export", run, "--frame", "dataset", "--format", "euroc", "--log", log)
+    assert r.code == 0, r.err
+    est = file_interface.read_euroc_csv_trajectory(str(run / "export/fuse_dataset/uav1.csv"))
+    ref = file_interface.read_tum_trajectory_file(
+        str(mav0 / "state_groundtruth_estimate0" / "groundtruth.tum")
+    )
+    ref, est = sync.associate_trajectories(ref, est)
+    assert est.num_poses == 95
+    ape = metrics.APE(metrics.PoseRelation.full_transformation)
+    ape.process_data((ref, est))
+    assert ape.get_statistic(metrics.StatisticsType.max) < 1e-6  # 9 decimals in the .tum
+    nav = file_interface.read_tum_trajectory_file(str(RunLayout(run).fuse().trajectory("uav1")))
+    ape.process_data(sync.associate_trajectories(ref, nav))
+    assert ape.get_statistic(metrics.StatisticsType.max) > 0.5  # the nav frame is another
