@@ -56,13 +56,13 @@ def dataset_frame_of(record: Mapping[str, str], where: str) -> DatasetFrame | No
         ) from None
 
 
-def log_dataset_frames(paths: Sequence[Path]) -> dict[str, tuple[DatasetFrame | None, Path]]:
-    """For each vehicle an importer wrote into one of the logs at `paths`: its dataset frame
-    (None for an import that recorded none) and the log. Logs without an import record
-    (simulations, recordings) contribute nothing."""
-    out: dict[str, tuple[DatasetFrame | None, Path]] = {}
-    for path in paths:
-        record = open_log(Path(path)).metadata().get(IMPORT_RECORD)
+def log_dataset_frames(paths: Sequence[Path]) -> dict[Path, tuple[str, DatasetFrame | None]]:
+    """For each log at `paths` an importer wrote: the vehicle it was imported as, and its
+    dataset frame (None for an import that recorded none). Logs without an import record
+    (simulations, recordings) are left out."""
+    out: dict[Path, tuple[str, DatasetFrame | None]] = {}
+    for path in map(Path, paths):
+        record = open_log(path).metadata().get(IMPORT_RECORD)
         if record is not None and record.get("vehicle"):
-            out[record["vehicle"]] = (dataset_frame_of(record, str(path)), Path(path))
+            out[path] = (record["vehicle"], dataset_frame_of(record, str(path)))
     return out

@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-from cvslam_cli.config import Config
+from cvslam_cli.config import Config, LogsConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.geometry.output_frames import T_ENU_NAV, reexpress
 from cvslam_cli.io.atomic import check_writable, write_text_atomic
 from cvslam_cli.io.dataset_frames import log_dataset_frames
 from cvslam_cli.io.features_file import feature_frame_index
-from cvslam_cli.io.logs import all_log_paths, with_run_bindings
+from cvslam_cli.io.logs import all_log_paths, require_logs, with_run_bindings
 from cvslam_cli.io.run_layout import FUSE, FuseFolder, RunLayout
 from cvslam_cli.io.textfiles import ns_to_seconds_text
 from cvslam_cli.io.trajectory import read_tum, write_euroc_csv, write_kitti, write_tum
@@ -72,30 +72,40 @@ def _source_folder(layout: RunLayout, source: str) -> FuseFolder:
     raise CvslamError(f"{layout.root}: no estimates in {source}/ (fuse folders: {have})")
 
 
-def _run_logs(cfg: Config, layout: RunLayout, log_paths: Sequence[Path]) -> list[Path]:
-    """`log_paths`, else the logs the run's features came from, with the logs bound to
-    vehicles (the config's and those extract recorded)."""
-    logs_cfg = with_run_bindings(cfg.logs, layout.root)
-    if not log_paths:
+def _run_logs(logs_cfg: LogsConfig, layout: RunLayout, log_paths: Sequence[Path]) -> list[Path]:
+    """`log_paths` and the logs bound to vehicles; with neither, the logs the run's
+    features came from. Each must exist."""
+    if not log_paths and not any(v.log for v in logs_cfg.vehicles.values()):
         _, metas = feature_frame_index(layout.root)
         log_paths = layout.find_logs(metas)
-    return all_log_paths(list(log_paths), logs_cfg)
+    paths = all_log_paths(list(log_paths), logs_cfg)
+    require_logs(paths)
+    return paths
 
 
 def _in_dataset_frames(
     cfg: Config, layout: RunLayout, tables: dict[str, PoseTable], log_paths: Sequence[Path]
 ) -> dict[str, VehicleExport]:
-    logs = _run_logs(cfg, layout, log_paths)
-    frames = log_dataset_frames(logs)
+    """Each of `tables` in its log's dataset frame: the log bound to the vehicle
+    (`logs.vehicles.<v>.log`, NAME=PATH, or as extract recorded it), else the log imported
+    under the vehicle's name."""
+    logs_cfg = with_run_bindings(cfg.logs, layout.root)
+    logs = _run_logs(logs_cfg, layout, log_paths)
+    imported = log_dataset_frames(logs)
     out = {}
     for v, table in tables.items():
-        frame, log = frames.get(v, (None, None))
+        bound = logs_cfg.vehicles[v].log if v in logs_cfg.vehicles else ""
+        mine = [p for p in imported if bound and p.resolve() == Path(bound).resolve()]
+        mine = mine or [p for p, (name, _) in imported.items() if name == v]
+        frame = imported[mine[0]][1] if mine else None
         if frame is None:
             where = (
-                f"its log {log}" if log is not None else f"its logs ({', '.join(map(str, logs))})"
+                f"its log {mine[0]} records"
+                if mine
+                else (f"its logs ({', '.join(map(str, logs))}) record")
             )
             raise CvslamError(
-                f"{layout.root}: --frame dataset: vehicle {v}: {where} records no dataset frame "
+                f"{layout.root}: --frame dataset: vehicle {v}: {where} no dataset frame "
                 "(a simulated or recorded log, or imported by an older cvslam: re-import it); "
                 "use --frame nav or enu"
             )

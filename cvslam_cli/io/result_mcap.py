@@ -44,6 +44,7 @@ from cvslam_cli.records.landmarks import LandmarkMap
 from cvslam_cli.records.poses import PoseTable
 
 MAP_TOPIC = "/map/landmarks"
+_CLOUD = "sensor_msgs/msg/PointCloud2"
 TF_TOPIC = "/tf"
 ENU_FRAME_ID = "enu"
 RESULT_METADATA_NAME = "cvslam.fuse"
@@ -196,9 +197,6 @@ def _map_events(
         _CLOUD,
         partial(_cloud_fields, int(final_ns), frame_id, cloud, None),
     )
-
-
-_CLOUD = "sensor_msgs/msg/PointCloud2"
 
 
 def _static_transforms(rigs: Mapping[str, StereoRig]) -> list[tuple[str, str, F64]]:

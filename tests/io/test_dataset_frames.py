@@ -81,7 +81,7 @@ def test_kitti_first_pose_not_identity_is_kept(tmp_path):
     # and through a written log
     log = tmp_path / "car.mcap"
     import_kitti(seq, log, "car")
-    ((vehicle, (frame, path)),) = log_dataset_frames([log]).items()
+    ((path, (vehicle, frame)),) = log_dataset_frames([log]).items()
     assert vehicle == "car" and path == log and frame is not None
     np.testing.assert_allclose(
         frame.T_world_nav @ frame.T_body_sensor, Ts[0], atol=1e-12

@@ -98,7 +98,7 @@ def test_dataset_frame_of_a_simulation_is_one_clear_line(small_image_run, tmp_pa
     r = cvslam("export", run, "--frame", "dataset")
     assert r.code == 1 and r.err.count("\n") == 1 and "Traceback" not in r.err
     assert f"{run}: --frame dataset: vehicle uav1: its logs (" in r.err
-    assert "uav1.mcap" in r.err and "records no dataset frame" in r.err
+    assert "uav1.mcap" in r.err and "record no dataset frame" in r.err
     assert not (run / "export").exists()
 
 
@@ -205,3 +205,28 @@ def test_euroc_dataset_frame_through_evo(shared_data, tmp_path, cvslam):
     nav = file_interface.read_tum_trajectory_file(str(RunLayout(run).fuse().trajectory("uav1")))
     ape.process_data(sync.associate_trajectories(ref, nav))
     assert ape.get_statistic(metrics.StatisticsType.max) > 0.5  # the nav frame is another
+
+
+def test_dataset_frame_of_a_log_bound_to_another_vehicle_name(tmp_path, cvslam):
+    """A log imported as `car` bound to vehicle `robot` (NAME=PATH) gives robot its frame;
+    without the binding there is none for robot."""
+    from cvslam_cli.config import load_config
+    from cvslam_cli.geometry.rotations import make_T, quat_xyzw_to_matrix
+    from cvslam_cli.io.logs import ground_truth_tables, open_logs
+    from tests.io.test_dataset_frames import kitti_folder
+
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(4, 4))
+    Ts = np.stack(
+        [make_T(quat_xyzw_to_matrix(x / np.linalg.norm(x)), rng.normal(size=3)) for x in q]
+    )
+    seq, log, run = kitti_folder(tmp_path / "seq", Ts), tmp_path / "car.mcap", tmp_path / "run"
+    assert cvslam("-q", "import", "kitti", seq, "--vehicle", "car", "-o", log).code == 0
+    truth = ground_truth_tables(open_logs([log], load_config().logs), ["car"])["car"]
+    write_tum(RunLayout(run).fuse().trajectory("robot"), truth)
+    r = cvslam("export", run, "--frame", "dataset", "--format", "kitti", "--log", f"robot={log}")
+    assert r.code == 0, r.err
+    back = read_kitti(run / "export" / "fuse_dataset" / "robot.txt")
+    np.testing.assert_allclose(as_T(back), Ts, atol=1e-8)  # the .tum's 9 decimals
+    r = cvslam("export", run, "--frame", "dataset", "--log", log)
+    assert r.code == 1 and "vehicle robot: its logs (" in r.err and "record no dataset" in r.err
