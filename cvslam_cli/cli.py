@@ -960,6 +960,73 @@ def do_run(
         )
 
 
+# ----------------------------------------------------------------------------- export
+
+
+@cli.command("export")
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option(
+    "--source",
+    default="fuse",
+    show_default=True,
+    help="The fuse folder whose estimates to export (fuse, fuse_ekf, fuse_single, ...).",
+)
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["tum", "kitti", "euroc"]),
+    default="tum",
+    show_default=True,
+    help="tum: <v>.tum; kitti: <v>.txt (3x4 poses) and <v>_times.txt; euroc: <v>.csv.",
+)
+@click.option(
+    "--frame",
+    type=click.Choice(["nav", "enu", "dataset"]),
+    default="nav",
+    show_default=True,
+    help="nav: NED, body frame; enu: z up, body frame; dataset: the dataset's own world "
+    "and sensor (KITTI camera 0, EuRoC IMU), as its ground truth.",
+)
+@click.option(
+    "-o",
+    "--output",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Output folder (default: RUN_DIR/export/<source>_<frame>).",
+)
+@_log_option("the dataset frame (--frame dataset)")
+@config_options
+def export_cmd(
+    run_dir: Path,
+    source: str,
+    fmt: str,
+    frame: str,
+    out_dir: Path | None,
+    log_paths: tuple[Path, ...],
+    cfg: Config,
+) -> None:
+    """Every vehicle's estimate in the frame and format of your tools (docs/export.md):
+    with --frame dataset, evo's APE and RPE against the dataset's own ground truth
+    (KITTI poses.txt, EuRoC data.csv) are right."""
+    from cvslam_cli.io.export import run
+
+    paths, cfg = bound_logs(log_paths, cfg)
+    with run_session(run_dir, "export"):
+        summary = run(
+            cfg, run_dir, source=source, fmt=fmt, frame=frame, out_dir=out_dir, log_paths=paths
+        )
+    for name, v in summary.vehicles.items():
+        log.info(
+            "%s: %d poses of the %s in %s -> %s",
+            name,
+            len(v.table),
+            v.sensor,
+            v.world,
+            ", ".join(map(str, v.files)),
+        )
+
+
 # ----------------------------------------------------------------------------- many runs
 
 for _command in BATCH_COMMANDS:  # batch, summary, sweep (cvslam_cli/batch/commands.py)

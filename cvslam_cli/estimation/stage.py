@@ -67,9 +67,9 @@ from cvslam_cli.io.fuse_files import (
     write_csv_atomic,
     write_map_csv,
     write_map_ply,
-    write_result_mcap,
 )
 from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, require_logs, with_run_bindings
+from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
@@ -500,7 +500,10 @@ def _write_outputs(
     dr: dict[str, VehicleTrack],
     header: str,
     meta: dict[str, str],
+    viewer: dict[str, Any],
 ) -> None:
+    """Every fuse output; `viewer`: what result.mcap shows besides the estimates (the
+    ground truth and the rigs, `write_result_mcap`'s keywords)."""
     tables = {v: pose_table(t) for v, t in res.tracks.items()}
     dr_tables = {v: pose_table(t) for v, t in dr.items()}
     for v, t in res.tracks.items():
@@ -516,7 +519,15 @@ def _write_outputs(
     write_map_ply(out.map_ply, table)
     write_csv_atomic(out.timeline, pd.DataFrame(res.timeline))
     write_csv_atomic(out.events, pd.DataFrame(res.events, columns=EVENT_COLUMNS))
-    write_result_mcap(out.result_mcap, tables, table, deadreckoning=dr_tables, metadata=meta)
+    write_result_mcap(
+        out.result_mcap,
+        tables,
+        table,
+        pose_covariances={v: t.pose_cov for v, t in res.tracks.items()},
+        deadreckoning=dr_tables,
+        metadata=meta,
+        **viewer,
+    )
 
 
 def _header(kind: str) -> str:
@@ -674,7 +685,11 @@ def run(
     _refuse_diverged(res, inputs, layout, out.name, kind)
     span_s = max((v.features.frame_stamp_ns[-1] - v.start_ns) * 1e-9 for v in inputs)
     with atomic_dir(out.path) as tmp:
-        _write_outputs(FuseFolder(tmp), res, dr, _header(kind), _metadata(kind, single))
+        viewer = {
+            "ground_truth": truth,
+            "rigs": {v: stereo_rig(fs.rig) for v, fs in features.items()},
+        }
+        _write_outputs(FuseFolder(tmp), res, dr, _header(kind), _metadata(kind, single), viewer)
     vehicles = {v.name: _vehicle_fuse(v, res, dr[v.name], truth[v.name]) for v in inputs}
     summary = FuseSummary(
         out.path,

@@ -3,8 +3,7 @@
 - `map.csv`: the landmark map in full precision (`write_map_csv` / `read_map_csv`, exact);
 - `map.ply`: the same map as a binary point cloud for CloudCompare, MeshLab, Open3D;
 - pose covariance `.npz`: the 6x6 covariance of each estimated pose (versioned format);
-- `result.mcap`: ROS 2 messages for viewers (Foxglove, RViz through rosbag2): poses, paths
-  and the map as a point cloud;
+- (`result.mcap`, the viewer log, is written by `io/result_mcap.py`);
 - `write_csv_atomic`: any table (timeline, events) as CSV, floats that read back exactly.
 
 Every writer is atomic (`io/atomic.py`); every reader raises a
@@ -15,7 +14,6 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -23,13 +21,10 @@ import pandas as pd
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.atomic import write_bytes_atomic, write_text_atomic
-from cvslam_cli.io.mcap_writer import LogWriter
-from cvslam_cli.io.names import NAV_FRAME_ID, vehicle_names
 from cvslam_cli.io.npz import load_versioned_npz, save_npz
 from cvslam_cli.io.textfiles import read_text
 from cvslam_cli.records.arrays import F64, I32, I64, check_shape
 from cvslam_cli.records.landmarks import UNKNOWN_TRUE_ID, LandmarkMap
-from cvslam_cli.records.poses import PoseTable
 
 # -- CSV ------------------------------------------------------------------------------------
 
@@ -249,98 +244,3 @@ def load_pose_covariances(path: Path) -> tuple[I64, F64]:
     except (KeyError, ValueError) as exc:
         raise CvslamError(f"{path}: corrupt pose covariance file ({exc})") from None
     return stamps.astype(np.int64), cov.astype(np.float64)
-
-
-# -- result.mcap ----------------------------------------------------------------------------
-
-MAP_TOPIC = "/map/landmarks"
-RESULT_METADATA_NAME = "cvslam.fuse"
-CLOUD_DTYPE = np.dtype(
-    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("std", "<f4"), ("id", "<i4"), ("n_obs", "<i4")]
-)
-
-
-def pose_topic(vehicle: str) -> str:
-    return f"/{vehicle}/fuse/pose"
-
-
-def path_topic(vehicle: str) -> str:
-    return f"/{vehicle}/fuse/path"
-
-
-def deadreckoning_path_topic(vehicle: str) -> str:
-    return f"/{vehicle}/deadreckoning/path"
-
-
-def map_cloud(table: LandmarkMap) -> np.ndarray:
-    """(N,) structured array `CLOUD_DTYPE` for the PointCloud2 of the map."""
-    v = map_vertices(table)
-    cloud = np.empty(len(table), dtype=CLOUD_DTYPE)
-    for name in CLOUD_DTYPE.names or ():
-        cloud[name] = v[name]
-    return cloud
-
-
-def write_result_mcap(
-    path: Path,
-    trajectories: Mapping[str, PoseTable],
-    landmarks: LandmarkMap,
-    *,
-    deadreckoning: Mapping[str, PoseTable] | None = None,
-    frame_id: str = NAV_FRAME_ID,
-    metadata: Mapping[str, str] | None = None,
-) -> None:
-    """Write `result.mcap` (ROS 2, CDR) for viewers, all in `frame_id` (the NED nav frame):
-
-    - `/<vehicle>/fuse/pose` geometry_msgs/msg/PoseStamped, one per estimated pose;
-    - `/<vehicle>/fuse/path` nav_msgs/msg/Path, one message at the vehicle's last stamp
-      holding the whole trajectory; `/<vehicle>/deadreckoning/path` the same for
-      `deadreckoning` when given;
-    - `/map/landmarks` sensor_msgs/msg/PointCloud2 (x y z std float32, id n_obs int32), one
-      message at the last stamp of all trajectories;
-    - metadata record `cvslam.fuse`: frame_id, nav_frame NED, vehicles, landmarks count, and
-      `metadata`.
-
-    Vehicles with no pose get no messages. Temporary name, renamed when complete.
-    """
-    dr = dict(deadreckoning or {})
-    for vehicle in (*trajectories, *dr):
-        vehicle_names(vehicle)  # a CvslamError for a name that cannot be part of a topic
-    last = [int(t.stamps_ns[-1]) for t in (*trajectories.values(), *dr.values()) if len(t)]
-    if not last and len(landmarks):  # no pose at all: the map's last observation
-        last = [int(landmarks.last_seen_ns.max())]
-    map_stamp_ns = max(last, default=0)
-    cloud = map_cloud(landmarks)
-    info = {
-        "frame_id": frame_id,
-        "nav_frame": "NED",
-        "vehicles": OBSERVER_SEPARATOR.join(trajectories),
-        "landmarks": str(len(landmarks)),
-        **{str(k): str(v) for k, v in (metadata or {}).items()},
-    }
-    with LogWriter(path) as w:
-        for vehicle, table in trajectories.items():
-            if not len(table):
-                continue
-            for t, p, q in zip(table.stamps_ns, table.p_nav_m, table.q_nav_body_xyzw, strict=True):
-                w.write_pose(pose_topic(vehicle), int(t), p, q, frame_id)
-            w.write_path(
-                path_topic(vehicle),
-                int(table.stamps_ns[-1]),
-                table.stamps_ns,
-                table.p_nav_m,
-                table.q_nav_body_xyzw,
-                frame_id,
-            )
-        for vehicle, table in dr.items():
-            if len(table):
-                w.write_path(
-                    deadreckoning_path_topic(vehicle),
-                    int(table.stamps_ns[-1]),
-                    table.stamps_ns,
-                    table.p_nav_m,
-                    table.q_nav_body_xyzw,
-                    frame_id,
-                )
-        w.write_point_cloud(MAP_TOPIC, map_stamp_ns, cloud, frame_id)
-        w.add_metadata(RESULT_METADATA_NAME, info)

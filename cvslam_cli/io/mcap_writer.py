@@ -88,6 +88,37 @@ def path_fields(
     }
 
 
+def pose_with_covariance_fields(
+    stamp_ns: int, p_m: Any, q_xyzw: Any, cov: Any, frame_id: str
+) -> dict[str, Any]:
+    """geometry_msgs/msg/PoseWithCovarianceStamped fields; `cov` (6, 6) row-major."""
+    return {
+        "header": header(stamp_ns, frame_id),
+        "pose": {
+            "pose": {"position": _vec(p_m), "orientation": _quat(q_xyzw)},
+            "covariance": [float(v) for v in np.asarray(cov, dtype=float).reshape(36)],
+        },
+    }
+
+
+def tf_message_fields(stamp_ns: int, transforms: list[tuple[str, str, Any]]) -> dict[str, Any]:
+    """tf2_msgs/msg/TFMessage fields: `transforms` (parent_frame, child_frame,
+    T_parent_child 4x4), all stamped `stamp_ns`."""
+    return {
+        "transforms": [
+            {
+                "header": header(stamp_ns, parent),
+                "child_frame_id": child,
+                "transform": {
+                    "translation": _vec(np.asarray(T)[:3, 3]),
+                    "rotation": _quat(matrix_to_quat_xyzw(np.asarray(T)[:3, :3])),
+                },
+            }
+            for parent, child, T in transforms
+        ]
+    }
+
+
 # sensor_msgs/msg/PointField datatype constants by NumPy dtype
 POINT_FIELD_DATATYPES: dict[np.dtype[Any], int] = {
     np.dtype("<i1"): 1,
@@ -193,6 +224,58 @@ def imu_cdr(
         0,
         accel_var,
     )
+
+
+def _pose_stamped_dtype(name_len: int, start: int) -> np.dtype[Any]:
+    """The CDR record of one geometry_msgs/PoseStamped in a sequence, starting at payload
+    offset `start` (a multiple of 4): stamp, frame_id (uint32 length with the NUL, the
+    bytes), padding to 8, then position and orientation (7 float64)."""
+    head = 12 + name_len
+    pad = -(start + head) % 8
+    return np.dtype(
+        {
+            "names": ["sec", "nanosec", "len", "name", "values"],
+            "formats": ["<i4", "<u4", "<u4", f"S{name_len}", ("<f8", (7,))],
+            "offsets": [0, 4, 8, 12, head + pad],
+            "itemsize": head + pad + 56,
+        }
+    )
+
+
+def path_cdr(stamp_ns: int, frame_id: str, stamps_ns: Any, p_m: Any, q_xyzw: Any) -> bytes:
+    """CDR (little-endian) encoding of a nav_msgs/msg/Path (see `path_fields`), the same
+    bytes mcap-ros2-support produces (checked in the tests), built with NumPy: a Path of a
+    thousand poses costs a few milliseconds instead of a few hundred through the generic
+    serialiser (the paths of result.mcap grow about once a second)."""
+    name = frame_id.encode() + b"\0"
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    values = np.concatenate(
+        [
+            np.asarray(p_m, dtype=np.float64).reshape(-1, 3),
+            np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4),
+        ],
+        axis=1,
+    )
+    n = len(stamps)
+    if values.shape[0] != n:
+        raise ValueError(f"path: {n} stamps but {values.shape[0]} poses")
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    head = struct.pack("<iII", sec, nanosec, len(name)) + name
+    head += b"\0" * (-len(head) % 4) + struct.pack("<I", n)
+    parts = [b"\0\x01\0\0", head]
+    start = len(head)
+    for rows in (slice(0, 1), slice(1, n)):  # the first record's padding may differ
+        k = len(range(*rows.indices(n)))
+        if not k:
+            continue
+        rec = np.zeros(k, dtype=_pose_stamped_dtype(len(name), start))
+        rec["sec"], rec["nanosec"] = np.divmod(stamps[rows], 1_000_000_000)
+        rec["len"] = len(name)
+        rec["name"] = name
+        rec["values"] = values[rows]
+        parts.append(rec.tobytes())
+        start += rec.nbytes
+    return b"".join(parts)
 
 
 class LogWriter(AtomicWriter):
@@ -366,22 +449,7 @@ class LogWriter(AtomicWriter):
     ) -> None:
         """`transforms`: (parent_frame, child_frame, T_parent_child 4x4)."""
         self.write(
-            topic,
-            "tf2_msgs/msg/TFMessage",
-            {
-                "transforms": [
-                    {
-                        "header": header(stamp_ns, parent),
-                        "child_frame_id": child,
-                        "transform": {
-                            "translation": _vec(T[:3, 3]),
-                            "rotation": _quat(matrix_to_quat_xyzw(T[:3, :3])),
-                        },
-                    }
-                    for parent, child, T in transforms
-                ]
-            },
-            stamp_ns,
+            topic, "tf2_msgs/msg/TFMessage", tf_message_fields(stamp_ns, transforms), stamp_ns
         )
 
     def write_path(
@@ -394,10 +462,10 @@ class LogWriter(AtomicWriter):
         frame_id: str,
     ) -> None:
         """One nav_msgs/msg/Path at `stamp_ns` holding every pose (see `path_fields`)."""
-        self.write(
+        self.write_raw(
             topic,
             "nav_msgs/msg/Path",
-            path_fields(stamp_ns, stamps_ns, p_m, q_xyzw, frame_id),
+            path_cdr(stamp_ns, frame_id, stamps_ns, p_m, q_xyzw),
             stamp_ns,
         )
 

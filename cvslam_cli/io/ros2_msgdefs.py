@@ -21,6 +21,8 @@ MSG_FIELDS: dict[str, str] = {
     "geometry_msgs/msg/Pose": "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation",
     "geometry_msgs/msg/PoseStamped": "std_msgs/Header header\ngeometry_msgs/Pose pose",
     "geometry_msgs/msg/PoseWithCovariance": "geometry_msgs/Pose pose\nfloat64[36] covariance",
+    "geometry_msgs/msg/PoseWithCovarianceStamped": "std_msgs/Header header\n"
+    "geometry_msgs/PoseWithCovariance pose",
     "geometry_msgs/msg/Twist": "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular",
     "geometry_msgs/msg/TwistWithCovariance": "geometry_msgs/Twist twist\nfloat64[36] covariance",
     "geometry_msgs/msg/Transform": "geometry_msgs/Vector3 translation\n"

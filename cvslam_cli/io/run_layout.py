@@ -10,6 +10,7 @@ stage finds its inputs there. No other module spells these names.
 <run>/fuse*_diverged_timeline.csv       RunLayout.diverged_timeline
 <run>/mosaic*/                          MosaicFolder (mosaic, mosaic_deadreckoning, ...)
 <run>/eval/                             EvalFolder
+<run>/export/<source>_<frame>/          RunLayout.export_dir (`cvslam export`)
 ```
 A simulator output directory (`SimLayout`) is a run directory too (`cvslam fuse SIM_OUT`):
 the logs, `scenario.yaml` and `truth/` beside `features/` (landmark mode).
@@ -35,6 +36,7 @@ FEATURES = "features"
 EXTRACT_STAGE = "extract"
 TRUTH = "truth"
 EVAL = "eval"
+EXPORT = "export"
 MERGED_MOSAIC = "all"  # the mosaic of all vehicles, beside one per vehicle
 DEADRECKONING = "deadreckoning"  # the trajectory of the motion input without corrections
 _CONFIG_SUFFIX = ".config.yaml"
@@ -225,6 +227,18 @@ class RunLayout:
     def fuse(self, name: str = FUSE) -> FuseFolder:
         """A fuse folder by name (`fuse_name`, or `mosaic.fuse_dir` of the config)."""
         return FuseFolder(self.root / name)
+
+    def fuse_folders(self) -> list[FuseFolder]:
+        """Every fuse folder with trajectories (`fuse`, `fuse_ekf`, ...), sorted by name."""
+        found = self.root.glob("fuse*") if self.root.is_dir() else []
+        return sorted(
+            (FuseFolder(p) for p in found if FuseFolder(p).has_trajectories()),
+            key=lambda f: f.name,
+        )
+
+    def export_dir(self, source: str, frame: str) -> Path:
+        """Where `cvslam export` writes the estimates of fuse folder `source` in `frame`."""
+        return self.root / EXPORT / f"{source}_{frame}"
 
     def diverged_timeline(self, fuse: str) -> Path:
         """The timeline up to the divergence of a fuse run that wrote no outputs."""

@@ -161,6 +161,22 @@ def read_kitti(path: Path, stamps_ns: I64 | None = None) -> PoseTable:
     return PoseTable(stamps, T[:, :, 3].copy(), q.reshape(-1, 4))
 
 
+EUROC_HEADER = (
+    "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
+)
+
+
+def write_euroc_csv(path: Path, table: PoseTable) -> None:
+    """Write `table` as an EuRoC ground-truth style CSV (`EUROC_HEADER`: integer ns stamp,
+    position, quaternion w x y z; the shortest text that reads back to the same float), what
+    `evo_ape euroc` and `read_euroc_csv` read. Temporary name, renamed when complete."""
+    lines = [EUROC_HEADER]
+    for t, p, q in zip(table.stamps_ns, table.p_nav_m, table.q_nav_body_xyzw, strict=True):
+        values = (*p, q[3], q[0], q[1], q[2])
+        lines.append(f"{int(t)}," + ",".join(repr(float(v)) for v in values))
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
 def read_euroc_csv(path: Path, error: type[CvslamError] = CvslamError) -> PoseTable:
     """Read an EuRoC ground-truth CSV (`t_ns, px, py, pz, qw, qx, qy, qz[, ...]` per line):
     integer-nanosecond stamps, the quaternion reordered to x y z w. `error` naming the file

@@ -9,21 +9,14 @@ import pytest
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.fuse_files import (
     MAP_COLUMNS,
-    MAP_TOPIC,
-    deadreckoning_path_topic,
     load_pose_covariances,
-    path_topic,
-    pose_topic,
     read_map_csv,
     save_pose_covariances,
     write_csv_atomic,
     write_map_csv,
     write_map_ply,
-    write_result_mcap,
 )
-from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.records.landmarks import LandmarkMap
-from cvslam_cli.records.poses import PoseTable
 
 
 def random_map(n: int = 40, seed: int = 0) -> LandmarkMap:
@@ -41,14 +34,6 @@ def random_map(n: int = 40, seed: int = 0) -> LandmarkMap:
         in_state=rng.random(n) < 0.5,
         true_id=rng.integers(-2, 10 * n, n),
     )
-
-
-def random_poses(n: int, seed: int, t0_ns: int = 1_000_000_000) -> PoseTable:
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    stamps = t0_ns + np.cumsum(rng.integers(1, 50_000_000, n)).astype(np.int64)
-    return PoseTable(stamps, rng.normal(scale=20.0, size=(n, 3)), q)
 
 
 def assert_same_map(a: LandmarkMap, b: LandmarkMap) -> None:
@@ -310,125 +295,3 @@ def test_write_csv_atomic_floats_read_back_exactly(tmp_path):
     rows = [line.split(",") for line in text.splitlines()[1:]]
     np.testing.assert_array_equal([float(r[2]) for r in rows], x)
     assert not list(path.parent.glob("*.partial"))
-
-
-# -- result.mcap ----------------------------------------------------------------------------
-
-
-def _result(tmp_path):
-    trajectories = {"uav1": random_poses(12, seed=10), "ugv1": random_poses(7, seed=11)}
-    dr = {"uav1": random_poses(12, seed=12)}
-    landmarks = random_map(30, seed=13)
-    path = tmp_path / "fuse" / "result.mcap"
-    write_result_mcap(path, trajectories, landmarks, deadreckoning=dr, metadata={"filter": "nhinf"})
-    return path, trajectories, dr, landmarks
-
-
-def _cloud_array(msg) -> np.ndarray:
-    types = {5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
-    dtype = np.dtype(
-        {
-            "names": [f.name for f in msg.fields],
-            "formats": [types[f.datatype] for f in msg.fields],
-            "offsets": [f.offset for f in msg.fields],
-            "itemsize": msg.point_step,
-        }
-    )
-    return np.frombuffer(bytes(msg.data), dtype=dtype, count=msg.width * msg.height)
-
-
-def _check_cloud(msg, landmarks: LandmarkMap) -> None:
-    assert [f.name for f in msg.fields][:5] == ["x", "y", "z", "std", "id"]
-    assert [f.datatype for f in msg.fields][:5] == [7, 7, 7, 7, 5]
-    assert msg.is_dense and not msg.is_bigendian and msg.height == 1
-    assert msg.width == len(landmarks) and msg.row_step == msg.point_step * msg.width
-    cloud = _cloud_array(msg)
-    np.testing.assert_array_equal(
-        np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1),
-        landmarks.p_nav_m.astype(np.float32),
-    )
-    np.testing.assert_array_equal(cloud["std"], landmarks.std_m.max(axis=1).astype(np.float32))
-    np.testing.assert_array_equal(cloud["id"], landmarks.landmark_id)
-    np.testing.assert_array_equal(cloud["n_obs"], landmarks.n_observations)
-
-
-def _pose_arrays(poses) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    stamps = np.array([p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in poses])
-    pos = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in poses])
-    o = [p.pose.orientation for p in poses]
-    return stamps, pos, np.array([[q.x, q.y, q.z, q.w] for q in o])
-
-
-def test_result_mcap_reads_back_with_the_project_reader(tmp_path):
-    path, trajectories, dr, landmarks = _result(tmp_path)
-    assert not list(path.parent.glob("*.partial"))
-    src = McapLogSource(path)
-    topics = src.topics()
-    assert topics[pose_topic("uav1")].schema_name == "geometry_msgs/msg/PoseStamped"
-    assert topics[pose_topic("uav1")].message_count == 12
-    assert topics[pose_topic("ugv1")].message_count == 7
-    assert topics[path_topic("uav1")].schema_name == "nav_msgs/msg/Path"
-    assert topics[path_topic("uav1")].message_count == 1
-    assert topics[deadreckoning_path_topic("uav1")].message_count == 1
-    assert deadreckoning_path_topic("ugv1") not in topics
-    assert topics[MAP_TOPIC].schema_name == "sensor_msgs/msg/PointCloud2"
-    md = src.metadata()["cvslam.fuse"]
-    assert md["frame_id"] == "nav" and md["nav_frame"] == "NED" and md["filter"] == "nhinf"
-    assert md["vehicles"] == "uav1;ugv1" and md["landmarks"] == "30"
-
-    msgs: dict[str, list] = {}
-    for m in src.messages():
-        msgs.setdefault(m.topic, []).append(m)
-    for vehicle, table in trajectories.items():
-        poses = msgs[pose_topic(vehicle)]
-        stamps, pos, q = _pose_arrays([m.msg for m in poses])
-        np.testing.assert_array_equal(stamps, table.stamps_ns)
-        np.testing.assert_array_equal([m.log_time_ns for m in poses], table.stamps_ns)
-        np.testing.assert_array_equal(pos, table.p_nav_m)
-        np.testing.assert_array_equal(q, table.q_nav_body_xyzw)
-        assert all(m.msg.header.frame_id == "nav" for m in poses)
-        (path_msg,) = msgs[path_topic(vehicle)]
-        assert path_msg.log_time_ns == table.stamps_ns[-1]
-        assert len(path_msg.msg.poses) == len(table)
-        stamps, pos, q = _pose_arrays(path_msg.msg.poses)
-        np.testing.assert_array_equal(stamps, table.stamps_ns)
-        np.testing.assert_array_equal(pos, table.p_nav_m)
-        np.testing.assert_array_equal(q, table.q_nav_body_xyzw)
-    (dr_msg,) = msgs[deadreckoning_path_topic("uav1")]
-    np.testing.assert_array_equal(_pose_arrays(dr_msg.msg.poses)[1], dr["uav1"].p_nav_m)
-    (cloud_msg,) = msgs[MAP_TOPIC]
-    last = max(int(t.stamps_ns[-1]) for t in (*trajectories.values(), *dr.values()))
-    assert cloud_msg.log_time_ns == last
-    _check_cloud(cloud_msg.msg, landmarks)
-
-
-def test_result_mcap_opens_with_rosbags(tmp_path):
-    rosbags_highlevel = pytest.importorskip("rosbags.highlevel")
-    path, trajectories, _, landmarks = _result(tmp_path)
-    with rosbags_highlevel.AnyReader([path]) as reader:
-        counts = {c.topic: c.msgcount for c in reader.connections}
-        assert counts[pose_topic("uav1")] == 12 and counts[MAP_TOPIC] == 1
-        by_topic = {c.topic: c for c in reader.connections}
-        conn = by_topic[path_topic("ugv1")]
-        _, _, raw = next(iter(reader.messages(connections=[conn])))
-        msg = reader.deserialize(raw, conn.msgtype)
-        np.testing.assert_array_equal(_pose_arrays(msg.poses)[1], trajectories["ugv1"].p_nav_m)
-        conn = by_topic[MAP_TOPIC]
-        _, _, raw = next(iter(reader.messages(connections=[conn])))
-        _check_cloud(reader.deserialize(raw, conn.msgtype), landmarks)
-
-
-def test_result_mcap_rejects_bad_vehicle_names_and_leaves_nothing(tmp_path):
-    path = tmp_path / "result.mcap"
-    with pytest.raises(CvslamError, match="vehicle name 'uav 1'"):
-        write_result_mcap(path, {"uav 1": random_poses(3, seed=14)}, random_map(2))
-    assert not list(tmp_path.iterdir())
-
-
-def test_result_mcap_with_only_a_map(tmp_path):
-    path = tmp_path / "result.mcap"
-    landmarks = random_map(4, seed=15)
-    write_result_mcap(path, {}, landmarks)
-    (m,) = list(McapLogSource(path).messages())
-    assert m.topic == MAP_TOPIC and m.log_time_ns == landmarks.last_seen_ns.max()
-    _check_cloud(m.msg, landmarks)

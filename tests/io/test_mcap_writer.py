@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from mcap_ros2._dynamic import serialize_dynamic
 
-from cvslam_cli.io.mcap_writer import _quat, _vec, header, imu_cdr
+from cvslam_cli.io.mcap_writer import _quat, _vec, header, imu_cdr, path_cdr, path_fields
 from cvslam_cli.io.ros2_msgdefs import msgdef_text
 
 
@@ -25,3 +25,14 @@ def test_fast_imu_encoding_equals_the_generic_encoder(frame_id):
         1_700_000_000_123_456_789, frame_id, [0.1, -0.2, 0.3], [1.5, 2.5, -9.8], 0.5, 0.25
     )
     assert got == expected
+
+
+@pytest.mark.parametrize("frame_id", ["", "a", "xyz", "nav", "uav1/base_link", "abcdefg"])
+@pytest.mark.parametrize("n", [0, 1, 2, 5])
+def test_fast_path_encoding_equals_the_generic_encoder(frame_id, n):
+    encode = serialize_dynamic("nav_msgs/msg/Path", msgdef_text("nav_msgs/msg/Path"))
+    rng = np.random.default_rng(n)
+    stamps = 1_700_000_000_000_000_000 + rng.integers(0, 10**12, n)
+    p, q = rng.normal(size=(n, 3)), rng.normal(size=(n, 4))
+    expected = encode["nav_msgs/msg/Path"](path_fields(123_456_789_012, stamps, p, q, frame_id))
+    assert path_cdr(123_456_789_012, frame_id, stamps, p, q) == expected

@@ -138,3 +138,14 @@ def test_logs_from_the_features_metadata_else_beside(tmp_path):
     sim = SimLayout(tmp_path)  # a simulator output: no recorded inputs, logs beside
     assert sim.find_logs([{}, {}]) == [log_a, log_b]
     assert RunLayout(tmp_path / "empty").find_logs([]) == []
+
+
+def test_fuse_folders_and_export_dirs(tmp_path):
+    layout = RunLayout(tmp_path)
+    assert layout.fuse_folders() == []
+    for name in ("fuse_single", "fuse"):
+        touch(layout.fuse(name).path / "uav1.tum")
+    (tmp_path / "fuse_ekf").mkdir()  # no trajectories: not listed
+    touch(layout.diverged_timeline("fuse_ekf"))
+    assert [f.name for f in layout.fuse_folders()] == ["fuse", "fuse_single"]
+    assert layout.export_dir("fuse_single", "enu") == tmp_path / "export" / "fuse_single_enu"

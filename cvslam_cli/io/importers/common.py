@@ -29,7 +29,9 @@ from tqdm import tqdm
 from cvslam_cli import __version__
 from cvslam_cli.errors import CvslamError, DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
+from cvslam_cli.geometry.output_frames import DatasetFrame
 from cvslam_cli.geometry.rotations import matrix_to_quat_xyzw, nearest_rotation
+from cvslam_cli.io.dataset_frames import dataset_frame_fields
 from cvslam_cli.io.mcap_writer import LogWriter
 from cvslam_cli.io.names import NAV_FRAME_ID, TF_STATIC_TOPIC, VehicleNames, vehicle_names
 from cvslam_cli.io.textfiles import (
@@ -222,10 +224,13 @@ def import_metadata(
     conversion: str,
     body_frame: str,
     ground_truth: Path | None,
+    dataset_frame: DatasetFrame | None = None,
     **extra: str,
 ) -> dict[str, str]:
     """The "cvslam.import" metadata record: where the log came from and how its frames
-    were converted to NED; `extra` entries come before the cvslam version."""
+    were converted to NED, in words (`conversion`) and, with `dataset_frame`, as numbers
+    (`io/dataset_frames.py`, for `cvslam export --frame dataset`); `extra` entries come
+    before the cvslam version."""
     return {
         "dataset": dataset,
         "source_dir": str(source_dir.resolve()),
@@ -234,6 +239,7 @@ def import_metadata(
         "conversion": conversion,
         "body_frame": body_frame,
         "ground_truth": "none" if ground_truth is None else str(ground_truth.resolve()),
+        **(dataset_frame_fields(dataset_frame) if dataset_frame is not None else {}),
         **extra,
         "cvslam_version": __version__,
     }

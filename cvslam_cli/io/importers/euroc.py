@@ -26,7 +26,13 @@ import numpy as np
 
 from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig
-from cvslam_cli.geometry.rotations import is_rotation, matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from cvslam_cli.geometry.output_frames import DatasetFrame
+from cvslam_cli.geometry.rotations import (
+    is_rotation,
+    make_T,
+    matrix_to_quat_xyzw,
+    quat_xyzw_to_matrix,
+)
 from cvslam_cli.io.importers.common import (
     ImportPlan,
     ImportSummary,
@@ -62,6 +68,14 @@ CONVERSION = (
     "p_nav = R_ned_world p_world, C_nav_body = R_ned_world C_world_body. The body frame "
     "(<vehicle>/base_link) is EuRoC's IMU body frame (imu0, T_BS = identity), not re-oriented "
     "to FRD; camera extrinsics T_body_cam are cam0/cam1 T_BS; IMU samples are in the body frame."
+)
+
+#: EuRoC's own frame: the pose of the IMU body (the vehicle's body frame) in the Vicon world.
+DATASET_FRAME = DatasetFrame(
+    make_T(R_NED_WORLD, np.zeros(3)),
+    np.eye(4),
+    "EuRoC Vicon world frame R (z up)",
+    "imu0 body frame B (EuRoC's body frame)",
 )
 
 _DISTORTION = {"radial-tangential": "plumb_bob", "equidistant": "equidistant"}
@@ -111,6 +125,7 @@ def plan_euroc(mav0_dir: Path, vehicle: str) -> ImportPlan:
             CONVERSION,
             "EuRoC IMU body frame (imu0)",
             Path(gt_source) if gt is not None else None,
+            DATASET_FRAME,
         ),
         "cvslam.rig": rig_metadata(names, rig, imu=json.dumps(imu_meta)),
     }

@@ -27,7 +27,8 @@ import numpy as np
 
 from cvslam_cli.errors import DatasetError
 from cvslam_cli.geometry.camera import CameraModel, StereoRig, translation_T
-from cvslam_cli.geometry.rotations import invert_T, is_rotation, make_T
+from cvslam_cli.geometry.output_frames import DatasetFrame
+from cvslam_cli.geometry.rotations import invert_T, is_rotation, make_T, nearest_rotation
 from cvslam_cli.io.importers.common import (
     ImportPlan,
     ImportSummary,
@@ -122,8 +123,10 @@ def plan_kitti(seq_dir: Path, vehicle: str, *, rate_hz: float = 10.0) -> ImportP
 
     poses_path = seq_dir / "poses.txt"
     gt = None
+    T_world_cam0_first = np.eye(4)  # KITTI's world: the first camera-0 frame
     if poses_path.exists():
         T_world_cam0 = read_poses(poses_path, n)
+        T_world_cam0_first = T_world_cam0[0]
         T_nav_body, reanchored = poses_to_nav(T_world_cam0)
         gt = pose_table_from_T(stamps_ns, T_nav_body)
         notes.append("ground truth from poses.txt")
@@ -143,6 +146,7 @@ def plan_kitti(seq_dir: Path, vehicle: str, *, rate_hz: float = 10.0) -> ImportP
             CONVERSION,
             "FRD at cam0 (x forward, y right, z down)",
             poses_path if gt is not None else None,
+            dataset_frame(T_world_cam0_first),
             timestamps=(
                 str(times_path.resolve()) if times_path.exists() else f"{rate_hz:g} Hz from t = 0"
             ),
@@ -152,6 +156,19 @@ def plan_kitti(seq_dir: Path, vehicle: str, *, rate_hz: float = 10.0) -> ImportP
         ),
     }
     return ImportPlan(names, rig, frames, None, gt, metadata, tuple(notes))
+
+
+def dataset_frame(T_world_cam0_first: F64) -> DatasetFrame:
+    """KITTI's own frame: poses of camera 0 (`T_BODY_CAM0`) in the world of poses.txt, the
+    nav frame being the body at the first frame (`poses_to_nav`):
+    T_nav_world = T_body_cam0 T_world_cam0(0)^-1."""
+    T_first = make_T(nearest_rotation(T_world_cam0_first[:3, :3]), T_world_cam0_first[:3, 3])
+    return DatasetFrame(
+        T_BODY_CAM0 @ invert_T(T_first),
+        T_BODY_CAM0,
+        "KITTI world (poses.txt: the first camera-0 optical frame, x right, y down, z forward)",
+        "camera 0 (left camera optical frame)",
+    )
 
 
 def _image_dirs(seq_dir: Path) -> tuple[Path, Path]:
