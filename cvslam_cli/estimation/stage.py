@@ -276,6 +276,17 @@ def _log_settings(
         settings.max_new_per_frame,
         settings.new_landmark_priority,
     )
+    w = settings.window
+    if w.window:
+        log.debug(
+            "fuse: sliding window of %d pose clones per vehicle, at most %d feature tracks, "
+            "track gate chi2 %.2f for the 5 rows of a two-frame track (fuse.window)",
+            w.window,
+            w.max_tracks,
+            w.gate_chi2[5],
+        )
+    else:
+        log.debug("fuse: no sliding window (fuse.window.clones 0): landmarks only")
     for v in inputs:
         at = [i for i, n in enumerate(v.model.state_names) if n in ("p_n", "p_e", "p_d")]
         log.debug(
