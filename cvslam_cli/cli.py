@@ -61,29 +61,11 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
     log.propagate = False
 
 
-def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
+def _with_config_layers(
+    func: Callable[..., Any], receive: Callable[[Sequence[Path], Sequence[str], list], dict]
+) -> Callable[..., Any]:
     """Add `--config FILE` (repeatable), `--calib` and `--set key.path=value` (repeatable);
-    the command receives the resolved `cfg: Config`."""
-
-    @_config_params
-    @functools.wraps(func)
-    def wrapper(
-        *args: Any,
-        config_files: Sequence[Path],
-        overrides: Sequence[str],
-        calibs: Sequence[str],
-        **kwargs: Any,
-    ) -> Any:
-        cfg = load_config(config_files, overrides, [_calib_layer(c) for c in calibs])
-        return func(*args, cfg=cfg, **kwargs)
-
-    return wrapper
-
-
-def config_source_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """The options of `config_options`; the command receives the config's `sources` (name,
-    mapping), lowest precedence first (`config.config_sources`), instead of the config."""
-    from cvslam_cli.config import config_sources
+    the command receives `receive(config files, overrides, calib layers)` as keywords."""
 
     @_config_params
     @functools.wraps(func)
@@ -95,9 +77,28 @@ def config_source_options(func: Callable[..., Any]) -> Callable[..., Any]:
         **kwargs: Any,
     ) -> Any:
         layers = [_calib_layer(c) for c in calibs]
-        return func(*args, sources=config_sources(config_files, overrides, layers), **kwargs)
+        return func(*args, **receive(config_files, overrides, layers), **kwargs)
 
     return wrapper
+
+
+def config_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Add `--config FILE` (repeatable), `--calib` and `--set key.path=value` (repeatable);
+    the command receives the resolved `cfg: Config`."""
+    return _with_config_layers(
+        func, lambda files, overrides, layers: {"cfg": load_config(files, overrides, layers)}
+    )
+
+
+def config_source_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """The options of `config_options`; the command receives the config's `sources` (name,
+    mapping), lowest precedence first (`config.config_sources`), instead of the config."""
+    from cvslam_cli.config import config_sources
+
+    return _with_config_layers(
+        func,
+        lambda files, overrides, layers: {"sources": config_sources(files, overrides, layers)},
+    )
 
 
 def _config_params(func: Callable[..., Any]) -> Callable[..., Any]:
