@@ -4,8 +4,11 @@ Each landmark has a global id (in order of creation) and keeps, whether it is in
 or not: its descriptor (from the frame that created it), which vehicles observed it (a
 bitmask), how often, when it was first and last seen (per vehicle), and its estimate. The
 state holds at most `settings.landmark_bound`; when a frame needs room, landmarks are evicted
-(marginalised out, `JointState.remove_landmarks`) and keep their last estimate in the output
-map.
+(marginalised out, `JointState.remove_landmarks`) and keep their last estimate: the nav-frame
+mean and marginal covariance at eviction (`cov_nav_m2`; their cross-covariance with the
+state is dropped, as marginalisation drops it), and when they left (`evicted_ns`). They stay
+in the book for the output map and the map file (`archive.py`) and for re-activation
+(`reactivation.py`), which brings one back into the state when a vehicle sees it again.
 
 Eviction rule (keep what is most useful for later re-observation): landmarks observed in the
 current frame are never evicted, and those observed or created in another vehicle's latest
@@ -32,8 +35,9 @@ from numpy.typing import NDArray
 
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.features import DESCRIPTOR_SIZE
+from cvslam_cli.records.landmark_archive import NEVER_NS, LandmarkArchive
 
-NEVER = np.iinfo(np.int64).min
+NEVER = NEVER_NS
 
 
 class LandmarkBook:
@@ -50,7 +54,9 @@ class LandmarkBook:
         self.last_seen_ns = np.full((capacity, n_vehicles), NEVER, dtype=np.int64)
         self.true_id = np.full(capacity, -1, dtype=np.int64)
         self.p_nav_m = np.zeros((capacity, 3))
-        self.std_m = np.zeros((capacity, 3))
+        self.cov_nav_m2 = np.zeros((capacity, 3, 3))
+        self.evicted_ns = np.full(capacity, NEVER, dtype=np.int64)  # last eviction
+        self.reactivations = np.zeros(capacity, dtype=np.int64)
         self.view_sum = np.zeros((capacity, 3))
         self.slot_ids = np.zeros(0, dtype=np.int64)
 
@@ -67,11 +73,14 @@ class LandmarkBook:
             "last_seen_ns",
             "true_id",
             "p_nav_m",
-            "std_m",
+            "cov_nav_m2",
+            "evicted_ns",
+            "reactivations",
             "view_sum",
         ):
             old = getattr(self, name)
-            fill = NEVER if name == "last_seen_ns" else (-1 if name == "true_id" else 0)
+            never = name in ("last_seen_ns", "evicted_ns")
+            fill = NEVER if never else (-1 if name == "true_id" else 0)
             arr = np.full((new_cap, *old.shape[1:]), fill, dtype=old.dtype)
             arr[:cap] = old
             setattr(self, name, arr)
@@ -111,7 +120,12 @@ class LandmarkBook:
     def seen_from(self, slots: I64, view_dir: F64, min_cos: float) -> NDArray[np.bool_]:
         """(k,) whether landmarks in `slots` are viewed along view_dir (k, 3) (unit vectors)
         within the maximum angle (cos >= min_cos) of their mean viewing direction."""
-        mean = self.view_sum[self.slot_ids[np.asarray(slots, dtype=np.int64)]]
+        ids = self.slot_ids[np.asarray(slots, dtype=np.int64)]
+        return self.ids_seen_from(ids, view_dir, min_cos)
+
+    def ids_seen_from(self, ids: I64, view_dir: F64, min_cos: float) -> NDArray[np.bool_]:
+        """`seen_from` for landmarks given by id (k,), in the state or not."""
+        mean = self.view_sum[np.asarray(ids, dtype=np.int64)]
         norm = np.linalg.norm(mean, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
             cos = np.einsum("ij,ij->i", mean, view_dir) / norm
@@ -132,22 +146,63 @@ class LandmarkBook:
         return cand[np.lexsort((-trace_cov[cand], self.n_observations[ids], in_view))]
 
     def store_estimates(self, slots: I64, p_nav_m: F64, cov: F64) -> None:
-        """Record the current estimate (k, 3) and covariance (k, 3, 3) of landmarks in slots."""
+        """Record the current nav-frame estimate (k, 3) and marginal covariance (k, 3, 3) of
+        the landmarks in slots."""
         ids = self.slot_ids[np.asarray(slots, dtype=np.int64)]
         self.p_nav_m[ids] = p_nav_m
-        self.std_m[ids] = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+        self.cov_nav_m2[ids] = cov
+
+    @property
+    def std_m(self) -> F64:
+        """(capacity, 3) standard deviations of the stored estimates (sqrt of the diagonal)."""
+        return np.sqrt(np.maximum(np.diagonal(self.cov_nav_m2, axis1=1, axis2=2), 0.0))
 
     def keep_slots(self, kept: I64) -> None:
         """After `JointState.remove_landmarks`: slot i now holds old slot kept[i]."""
         self.slot_ids = self.slot_ids[kept]
 
+    def evict(self, slots: I64, p_nav_m: F64, cov: F64, stamp_ns: int) -> None:
+        """Landmarks in `slots` leave the state at stamp_ns with their estimate (k, 3) and
+        marginal covariance (k, 3, 3) (call before `JointState.remove_landmarks` and
+        `keep_slots`)."""
+        self.store_estimates(slots, p_nav_m, cov)
+        self.evicted_ns[self.slot_ids[np.asarray(slots, dtype=np.int64)]] = stamp_ns
+
+    def in_state_mask(self) -> NDArray[np.bool_]:
+        """(count,) whether each landmark is in the state now."""
+        mask = np.zeros(self.count, dtype=bool)
+        mask[self.slot_ids] = True
+        return mask
+
+    def readmit(self, ids: I64) -> None:
+        """Landmarks `ids` (out of the state) were appended to the state's slots again
+        (`reactivation.py`)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        self.reactivations[ids] += 1
+        self.slot_ids = np.concatenate([self.slot_ids, ids])
+
+    def archive(self, names: list[str], coordinates: str) -> LandmarkArchive:
+        """Every landmark in the book (`records.landmark_archive`), vehicle i named names[i];
+        the stored estimates must be current (`store_estimates` of the state's landmarks)."""
+        n = self.count
+        return LandmarkArchive(
+            vehicles=tuple(names),
+            landmark_id=np.arange(n),
+            true_id=self.true_id[:n],
+            p_nav_m=self.p_nav_m[:n],
+            cov_nav_m2=self.cov_nav_m2[:n],
+            descriptor=self.desc[:n],
+            view_dir_sum_nav=self.view_sum[:n],
+            first_seen_ns=self.first_seen_ns[:n],
+            last_seen_ns=self.last_seen_ns[:n],
+            n_observations=self.n_observations[:n],
+            in_state=self.in_state_mask(),
+            evicted_ns=self.evicted_ns[:n],
+            reactivations=self.reactivations[:n],
+            coordinates=coordinates,
+        )
+
     def other_observers(self, ids: I64, vehicle: int, names: list[str]) -> str:
         """The vehicles (named `names`) other than `vehicle` that observed any of `ids`."""
         bits = int(np.bitwise_or.reduce(self.observers[ids])) & ~(1 << vehicle)
         return ";".join(n for i, n in enumerate(names) if bits >> i & 1)
-
-    def observer_names(self, names: list[str]) -> tuple[str, ...]:
-        out = []
-        for bits in self.observers[: self.count]:
-            out.append(";".join(n for i, n in enumerate(names) if bits >> i & 1))
-        return tuple(out)

@@ -164,7 +164,7 @@ class NewLandmarks:
         )
         order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2), latest)
         evict = order[: max(over, bound // 10)]
-        self.book.store_estimates(evict, st.landmarks(evict), covs[evict])
+        self.book.evict(evict, st.landmarks(evict), covs[evict], run.t_ns)
         self.book.keep_slots(st.remove_landmarks(evict))
         return pick[: max(0, bound - st.n_landmarks)]
 

@@ -67,6 +67,7 @@ from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
 from cvslam_cli.estimation.window_update import SlidingWindow
 from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.landmark_archive import LandmarkArchive, merge_archives
 from cvslam_cli.records.landmarks import LandmarkMap
 
 
@@ -88,9 +89,14 @@ class SlamResult:
     tracks: dict[str, VehicleTrack]
     timeline: list[dict[str, Any]]
     events: list[dict[str, Any]]
-    landmarks: LandmarkMap
+    archive: LandmarkArchive
     divergence: Divergence | None
     gamma_raised: int
+
+    @property
+    def landmarks(self) -> LandmarkMap:
+        """The map's summary (map.csv, map.ply)."""
+        return self.archive.landmark_map()
 
 
 @dataclass(frozen=True, eq=False)
@@ -382,24 +388,10 @@ class Slam:
         if st.n_landmarks:
             slots = np.arange(st.n_landmarks)
             book.store_estimates(slots, st.landmarks(), st.landmark_covariances(slots))
-        n = book.count
-        in_state = np.zeros(n, dtype=bool)
-        in_state[book.slot_ids] = True
-        last_seen = book.last_seen_ns[:n].max(axis=1) if n else np.zeros(0, dtype=np.int64)
-        lm = LandmarkMap(
-            landmark_id=np.arange(n),
-            p_nav_m=book.p_nav_m[:n].copy(),
-            std_m=book.std_m[:n].copy(),
-            observers=book.observer_names(self.names),
-            n_observations=book.n_observations[:n].copy(),
-            first_seen_ns=book.first_seen_ns[:n].copy(),
-            last_seen_ns=last_seen,
-            in_state=in_state,
-            true_id=book.true_id[:n].copy(),
-        )
+        archive = book.archive(self.names, st.coords.name)
         tracks = {r.vin.name: _track(r.vin, r.stamps_ns, r.x, r.pose_cov) for r in self.runs}
         return SlamResult(
-            tracks, self.timeline, self.events.rows, lm, self.divergence,
+            tracks, self.timeline, self.events.rows, archive, self.divergence,
             self.updater.gamma.raised_count,
         )  # fmt: skip
 
@@ -450,26 +442,14 @@ def dead_reckoning_track(vin: VehicleInput) -> VehicleTrack:
 
 def merge_results(results: list[SlamResult]) -> SlamResult:
     """One result from vehicles run each in its own filter (`--single`): tracks side by side,
-    timeline and events in time order, the maps concatenated with ids renumbered."""
-    maps = [r.landmarks for r in results]
-    offsets = np.cumsum([0] + [len(m) for m in maps])
-    lm = LandmarkMap(
-        landmark_id=np.arange(int(offsets[-1])),
-        p_nav_m=np.concatenate([m.p_nav_m for m in maps]).reshape(-1, 3),
-        std_m=np.concatenate([m.std_m for m in maps]).reshape(-1, 3),
-        observers=tuple(o for m in maps for o in m.observers),
-        n_observations=np.concatenate([m.n_observations for m in maps]),
-        first_seen_ns=np.concatenate([m.first_seen_ns for m in maps]),
-        last_seen_ns=np.concatenate([m.last_seen_ns for m in maps]),
-        in_state=np.concatenate([m.in_state for m in maps]),
-        true_id=np.concatenate([m.true_id for m in maps]),
-    )
+    timeline and events in time order, the maps concatenated with ids renumbered
+    (`merge_archives`)."""
     divergences = [r.divergence for r in results if r.divergence is not None]
     return SlamResult(
         tracks={k: v for r in results for k, v in r.tracks.items()},
         timeline=sorted((row for r in results for row in r.timeline), key=lambda x: x["stamp_ns"]),
         events=sorted((e for r in results for e in r.events), key=lambda x: x["stamp_ns"]),
-        landmarks=lm,
+        archive=merge_archives([r.archive for r in results]),
         divergence=min(divergences, key=lambda d: d.stamp_ns) if divergences else None,
         gamma_raised=sum(r.gamma_raised for r in results),
     )

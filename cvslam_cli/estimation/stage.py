@@ -69,6 +69,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
 )
 from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, require_logs, with_run_bindings
+from cvslam_cli.io.map_file import save_map
 from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
@@ -528,6 +529,7 @@ def _write_outputs(
     table = res.landmarks
     write_map_csv(out.map_csv, table)
     write_map_ply(out.map_ply, table)
+    save_map(out.map_npz, res.archive)
     write_csv_atomic(out.timeline, pd.DataFrame(res.timeline))
     write_csv_atomic(out.events, pd.DataFrame(res.events, columns=EVENT_COLUMNS))
     write_result_mcap(
@@ -569,7 +571,10 @@ def _load_features(
 
 def _outputs(out: FuseFolder, vehicles: Sequence[str]) -> list[Path]:
     """The files whose presence tells that the fuse run is complete (run.yaml)."""
-    return [out.timeline, out.map_csv, out.result_mcap, *(out.trajectory(v) for v in vehicles)]
+    return [
+        out.timeline, out.map_csv, out.map_npz, out.result_mcap,
+        *(out.trajectory(v) for v in vehicles),
+    ]  # fmt: skip
 
 
 def _filter(

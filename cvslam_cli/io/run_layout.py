@@ -98,6 +98,11 @@ class FuseFolder:
         return self.path / "map.ply"
 
     @property
+    def map_npz(self) -> Path:
+        """The map file: every landmark with its Gaussian and descriptor (`io/map_file.py`)."""
+        return self.path / "map.npz"
+
+    @property
     def timeline(self) -> Path:
         return self.path / "timeline.csv"
 

@@ -42,4 +42,19 @@ def test_viewing_angle_limit_and_other_observers():
     assert list(book.seen_from(np.array([0, 1]), tilted, np.cos(1.2))) == [True, False]
     assert book.other_observers(np.array([0, 1]), 0, ["uav1", "uav2"]) == "uav2"
     assert book.other_observers(np.array([0]), 0, ["uav1", "uav2"]) == ""
-    assert book.observer_names(["uav1", "uav2"]) == ("uav1", "uav1;uav2")
+    assert book.archive(["uav1", "uav2"], "cartesian").observers() == ("uav1", "uav1;uav2")
+
+
+def test_evicted_landmarks_keep_their_gaussian_and_come_back_in_the_archive():
+    book = _book(3)
+    cov = np.stack([np.diag([1.0, 2.0, 3.0]) * (i + 1) for i in range(3)])
+    book.store_estimates(np.arange(3), np.arange(9.0).reshape(3, 3), cov)
+    book.evict(np.array([1]), np.array([[7.0, 8.0, 9.0]]), 5 * cov[1:2], 400)
+    book.keep_slots(np.array([0, 2]))
+    a = book.archive(["uav1", "uav2"], "inverse_depth")
+    assert list(a.in_state) == [True, False, True] and list(a.evicted_ns) == [NEVER, 400, NEVER]
+    np.testing.assert_array_equal(a.p_nav_m[1], [7.0, 8.0, 9.0])
+    np.testing.assert_array_equal(a.cov_nav_m2[1], 5 * cov[1])
+    np.testing.assert_allclose(a.landmark_map().std_m[1], np.sqrt(5 * np.diag(cov[1])))
+    book.readmit(np.array([1]))
+    assert list(book.slot_ids) == [0, 2, 1] and list(book.reactivations[:3]) == [0, 1, 0]

@@ -23,6 +23,7 @@ from cvslam_cli.geometry.rotations import (
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.fuse_files import load_pose_covariances, read_map_csv
 from cvslam_cli.io.logs import LogSet
+from cvslam_cli.io.map_file import load_map
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum
@@ -107,6 +108,14 @@ def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cv
     mp = read_map_csv(out / "map.csv")
     assert len(mp) == tl.landmarks_mapped.iloc[-1]
     assert mp.in_state.sum() == tl.landmarks_in_state.iloc[-1]
+    # the map file holds the same landmarks with their full covariances
+    archive = load_map(out / "map.npz")
+    summary_map = archive.landmark_map()
+    np.testing.assert_array_equal(summary_map.p_nav_m, mp.p_nav_m)
+    np.testing.assert_array_equal(summary_map.std_m, mp.std_m)
+    assert summary_map.observers == mp.observers
+    assert np.all(np.linalg.eigvalsh(archive.cov_nav_m2)[:, 0] > 0)
+    assert np.all(archive.evicted_ns[~archive.in_state] > 0)  # every landmark out was evicted
     # the same inputs and config: the stage is skipped
     before = (out / "uav1.tum").stat().st_mtime_ns
     assert cvslam("fuse", run, *NOISE).code == 0
