@@ -85,6 +85,7 @@ class FrameOutcome:
     type2: int = 0
     type3: int = 0
     loop: int = 0
+    reactivated: int = 0
     rejected: int = 0
     nis: float = float("nan")
     dof: int = 0

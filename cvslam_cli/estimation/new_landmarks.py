@@ -125,7 +125,7 @@ class NewLandmarks:
         vehicle's, in vehicle order. Returns their slots and the frame rows they came from."""
         size = tuple(run.vin.features.rig.size_px[0])
         pick = cand[spread_order(frame.z[cand, :2], priority, size)[:want]]
-        pick = self._make_room(run, runs, protected, pick)
+        pick = self.make_room(run, runs, protected, pick)
         if len(pick) == 0:
             return np.zeros(0, dtype=np.int64), pick
         vin = run.vin
@@ -148,7 +148,7 @@ class NewLandmarks:
         )
         return slots, pick
 
-    def _make_room(self, run: VehicleRun, runs: list[VehicleRun], protected: I64, pick: I64) -> I64:
+    def make_room(self, run: VehicleRun, runs: list[VehicleRun], protected: I64, pick: I64) -> I64:
         """Evict landmarks (in batches of at least a tenth of the bound: fewer copies) when
         `pick` would not fit; returns the part of `pick` that fits."""
         st = self.state

@@ -47,6 +47,11 @@ class SlamSettings:
     loop_closure_min_landmarks: int = 3
     event_merge_ns: int = 5_000_000_000
     joint_init_window_ns: int = 200_000_000
+    reactivation: bool = True  # evicted landmarks brought back (reactivation.py)
+    reactivation_inflation: float = 4.0
+    reactivation_min_absence_ns: int = 5_000_000_000
+    reactivation_min_landmarks: int = 3
+    max_reactivated_per_frame: int = 15
     nis_window: int = 20
     nis_per_dof_max: float = 10.0
     max_view_angle_rad: float = 1.3963  # 80 degrees

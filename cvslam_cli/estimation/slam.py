@@ -12,6 +12,8 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
    (`JointState.predict`), with NH-infinity's scaled process noise (eq. 13);
 2. associate and classify: the landmarks in view are predicted into both images with their
    innovation covariances and matched to the frame's stereo matches (`association.py`);
+   evicted landmarks that the unclaimed matches re-observe are brought back into the state
+   first (`reactivation.py`: a loop closure on ground whose landmarks left the state);
    the accepted ones (at most `max_updates_per_frame`, spread over the image, the
    longest-unseen first) are classified into the paper's types 1 and 2
    (`association.classify`). A vehicle whose pose is not known yet is localised in the
@@ -61,6 +63,7 @@ from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
+from cvslam_cli.estimation.reactivation import Reactivation
 from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.update import VisualUpdater
@@ -148,6 +151,7 @@ class Slam:
             if settings.window.window > 0
             else None
         )  # fmt: skip
+        self.reactivation = Reactivation(self.state, self.book, settings, self.updater.R_pixel_hat)
         self.monitor = DivergenceMonitor(self.names, settings.nis_window, settings.nis_per_dof_max)
         self.timeline: list[dict[str, Any]] = []
         self.divergence: Divergence | None = None
@@ -184,6 +188,10 @@ class Slam:
             out = self.cooperation.localise_vehicle(run, frame)
         else:
             found, out = self._associate(run, frame)
+            reactivated = self._reactivate(run, frame, out)
+            if reactivated:  # associate again, with the landmarks brought back
+                found, out = self._associate(run, frame)
+                out.reactivated = reactivated
             if found is not None:
                 self._update(run, frame, found, out)
         # landmark uncertainty of this frame's updated landmarks (before any eviction)
@@ -246,6 +254,29 @@ class Slam:
         )  # fmt: skip
         out.types = types.type
         return _Associated(pred, pred_rows, match_rows, types), out
+
+    def _reactivate(self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome) -> int:
+        """Step 2b: evicted landmarks that the frame's free matches re-observe brought back
+        into the state (`reactivation.py`), logged; returns how many."""
+        if not self.reactivation.enabled:
+            return 0
+        found = self.reactivation.find(run, frame, out.types == TYPE_3)
+        if not len(found.ids):
+            return 0
+        pose = VehiclePose.of(self.state, run.vin)
+        protected = visible_slots(
+            self.state, self.book, run.vin, pose, self.settings.max_view_angle_rad
+        )
+        room = self.mapper.make_room(run, self.runs, protected, np.arange(len(found.ids)))
+        if not len(room):
+            return 0
+        ids = found.ids[room]
+        self.reactivation.reinsert(run, ids)
+        others = self.book.other_observers(ids, run.index, self.names)
+        self.events.add(
+            frame.stamp_ns, "reactivation", run.vin.name, others, len(ids), found.absent_ns[room]
+        )
+        return len(ids)
 
     def _update(
         self, run: VehicleRun, frame: FrameMatches, found: _Associated, out: FrameOutcome
@@ -358,6 +389,7 @@ class Slam:
                 "type2": out.type2,
                 "type3": out.type3,
                 "loop_closure": out.loop,
+                "reactivated": out.reactivated,
                 "localised": run.localised,
                 "sigma_pos_m": float(np.sqrt(np.trace(pose_cov[:3, :3]))),
                 "sigma_att_rad": float(np.sqrt(np.trace(pose_cov[3:, 3:]))),
