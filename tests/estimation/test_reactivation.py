@@ -122,7 +122,7 @@ def test_found_again_by_predicted_pixel_and_descriptor_not_when_absent_too_brief
         len(Reactivation(st, book, s, np.eye(4) * 0.25).find(run, early, np.ones(3, bool)).ids) == 0
     )
     # fewer consistent matches than the minimum: no re-activation
-    strict = SlamSettings(reactivation_min_landmarks=3)
+    strict = SlamSettings(reactivation_min_landmarks=3, reactivation_min_absence_ns=5_000_000_000)
     assert (
         len(Reactivation(st, book, strict, np.eye(4) * 0.25).find(run, frame, np.ones(3, bool)).ids)
         == 0
@@ -132,6 +132,7 @@ def test_found_again_by_predicted_pixel_and_descriptor_not_when_absent_too_brief
 LOOP_SEEDS = range(2)
 LOOP_DURATION_S = 20.0
 SMALL_BOUND = "fuse.map.max_landmarks=60"
+SHORT_ABSENCE = "fuse.map.reactivation_min_absence_s=5"  # the lap takes 17 s
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +183,7 @@ def test_reactivation_closes_the_loop_without_making_the_filter_overconfident(lo
     re-activated, it lowers the error, and the position NEES stays near its expected 3 and
     not above the filter's without re-activation (BENCHMARKS.md, "Fuse: re-activation")."""
     off, rmse_off, n_off = _loop_runs(loop_sims, SMALL_BOUND, "fuse.map.reactivation=false")
-    on, rmse_on, n_on = _loop_runs(loop_sims, SMALL_BOUND)
+    on, rmse_on, n_on = _loop_runs(loop_sims, SMALL_BOUND, SHORT_ABSENCE)
     print(
         f"\nre-activation off: NEES {off.mean():.2f}, RMSE {rmse_off:.3f} m; on: NEES "
         f"{on.mean():.2f}, RMSE {rmse_on:.3f} m, {n_on} landmarks re-activated"
