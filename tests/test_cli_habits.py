@@ -30,6 +30,7 @@ from cvslam_cli.config import (
 )
 from cvslam_cli.config_show import key_comments
 from tests.scenarios import small_uav_scenario
+from tests.signals import default_sigint
 from tests.synth import write_stereo_log
 
 REPO = Path(__file__).resolve().parent.parent
@@ -262,6 +263,7 @@ def test_ctrl_c_with_workers_exits_130_with_one_line(tmp_path, long_log, delay_s
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group, as a shell gives a command
+        preexec_fn=default_sigint,
     )
     seen = []
     while not seen or "worker process(es)" not in seen[-1]:  # the pool is about to start

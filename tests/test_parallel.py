@@ -15,6 +15,7 @@ import pytest
 
 from cvslam_cli.parallel import STATE, WorkerError, ordered_map
 from tests.conftest import REPO
+from tests.signals import default_sigint
 from tests.synth import write_stereo_log
 
 
@@ -70,6 +71,7 @@ def busy_extract(tmp_path):
         text=True,
         env=env,
         start_new_session=True,  # its own process group, as a shell gives a job
+        preexec_fn=default_sigint,
     )
     parent = psutil.Process(proc.pid)
     deadline = time.monotonic() + 60
