@@ -318,13 +318,15 @@ def visible_slots(
 
 
 def record_observations(
-    state: JointState, book: LandmarkBook, run: VehicleRun, slots: I64, stamp_ns: int
+    state: JointState, book: LandmarkBook, run: VehicleRun, slots: I64, stamp_ns: int, z: F64
 ) -> None:
-    """Book that run's vehicle observed the landmarks in `slots` at its current pose."""
+    """Book that run's vehicle observed the landmarks in `slots` at its current pose, with
+    the measurements z (k, 4) (kept in its observation log)."""
     vin = run.vin
     p, euler = vin.model.pose(state.vehicle_x(vin.name))
     views = view_directions(vin, p, euler, state.landmarks(slots))
     book.observe(book.slot_ids[slots], run.index, stamp_ns, views)
+    run.observations.add(stamp_ns, book.slot_ids[slots], z)
 
 
 def predict_in_state(

@@ -94,7 +94,10 @@ class Cooperation:
             return
         a = assoc.pred_index
         self.updater.update(pose.index, pred, a, cand.z[assoc.match_index], self.bounded_vehicles())
-        record_observations(self.state, self.book, other, slots[front][a], cand.stamp_ns)
+        record_observations(
+            self.state, self.book, other, slots[front][a], cand.stamp_ns,
+            cand.z[assoc.match_index],
+        )  # fmt: skip
         other.candidates = cand.without(assoc.match_index)
         self.events.add(t_ns, "joint_initialisation", run.vin.name, vin.name, k)
 
@@ -145,7 +148,9 @@ class Cooperation:
             gamma_raised=res.gamma_raised,
         )  # fmt: skip
         others = book.other_observers(ids, run.index, self.names)
-        record_observations(self.state, self.book, run, slots, frame.stamp_ns)
+        record_observations(
+            self.state, self.book, run, slots, frame.stamp_ns, frame.z[found.match_rows]
+        )
         run.localised_ns = frame.stamp_ns
         after_s = (frame.stamp_ns - vin.start_ns) * 1e-9
         self.events.add(

@@ -139,13 +139,14 @@ class NewLandmarks:
             self._anchors[run.index] = (new_key, since_ns if new_key == key else frame.stamp_ns)
         else:
             slots = _cartesian(self.state, vin, pose, p_cam, cov_cam)
-        self.book.add(
+        ids = self.book.add(
             frame.desc[pick],
             run.index,
             frame.stamp_ns,
             frame.true_id[pick],
             view_directions(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots)),
         )
+        run.observations.add(frame.stamp_ns, ids, frame.z[pick])
         return slots, pick
 
     def make_room(self, run: VehicleRun, runs: list[VehicleRun], protected: I64, pick: I64) -> I64:

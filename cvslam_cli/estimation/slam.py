@@ -72,6 +72,7 @@ from cvslam_cli.estimation.window_update import SlidingWindow
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.landmark_archive import LandmarkArchive, merge_archives
 from cvslam_cli.records.landmarks import LandmarkMap
+from cvslam_cli.records.observations import ObservationTable
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,6 +96,8 @@ class SlamResult:
     archive: LandmarkArchive
     divergence: Divergence | None
     gamma_raised: int
+    # every landmark observation used, ids as in `landmarks` (fuse/observations.npz, refine)
+    observations: ObservationTable | None = None
 
     @property
     def landmarks(self) -> LandmarkMap:
@@ -298,7 +301,10 @@ class Slam:
         out.type1, out.type2 = types.count(TYPE_1), types.count(TYPE_2)
         loops = types.loop_closure
         out.loop = int(loops.sum())
-        record_observations(self.state, self.book, run, out.updated_slots, frame.stamp_ns)
+        record_observations(
+            self.state, self.book, run, out.updated_slots, frame.stamp_ns,
+            frame.z[found.match_rows],
+        )  # fmt: skip
         t_ns = frame.stamp_ns
         if out.loop >= s.loop_closure_min_landmarks:
             self.events.add(t_ns, "loop_closure", vin.name, "", out.loop, types.absent_ns[loops])
@@ -424,8 +430,16 @@ class Slam:
         tracks = {r.vin.name: _track(r.vin, r.stamps_ns, r.x, r.pose_cov) for r in self.runs}
         return SlamResult(
             tracks, self.timeline, self.events.rows, archive, self.divergence,
-            self.updater.gamma.raised_count,
+            self.updater.gamma.raised_count, _observations(self.runs),
         )  # fmt: skip
+
+
+def _observations(runs: list[VehicleRun]) -> ObservationTable:
+    """Every vehicle's observation log as one table (vehicle indices in `runs`' order)."""
+    names = [r.vin.name for r in runs]
+    return ObservationTable.concatenate(
+        names, [(i, *r.observations.arrays()) for i, r in enumerate(runs)]
+    )
 
 
 def _track(vin: VehicleInput, stamps_ns: list[int], xs: list[F64], covs: list[F64]) -> VehicleTrack:
@@ -477,6 +491,7 @@ def merge_results(results: list[SlamResult]) -> SlamResult:
     timeline and events in time order, the maps concatenated with ids renumbered
     (`merge_archives`)."""
     divergences = [r.divergence for r in results if r.divergence is not None]
+    offsets = np.cumsum([0] + [len(r.archive) for r in results])  # as merge_archives numbers
     return SlamResult(
         tracks={k: v for r in results for k, v in r.tracks.items()},
         timeline=sorted((row for r in results for row in r.timeline), key=lambda x: x["stamp_ns"]),
@@ -484,4 +499,21 @@ def merge_results(results: list[SlamResult]) -> SlamResult:
         archive=merge_archives([r.archive for r in results]),
         divergence=min(divergences, key=lambda d: d.stamp_ns) if divergences else None,
         gamma_raised=sum(r.gamma_raised for r in results),
+        observations=_merged_observations(results, offsets),
     )
+
+
+def _merged_observations(results: list[SlamResult], id_offsets: I64) -> ObservationTable | None:
+    """The observation tables of runs merged by `merge_results` (landmark ids renumbered
+    like the maps: run k's ids shifted by id_offsets[k])."""
+    tables = [r.observations for r in results if r.observations is not None]
+    if len(tables) < len(results):
+        return None
+    names = [n for t in tables for n in t.vehicles]
+    parts, base = [], 0
+    for t, off in zip(tables, id_offsets, strict=False):
+        for i in range(len(t.vehicles)):
+            sel = t.vehicle == i
+            parts.append((base + i, t.stamp_ns[sel], t.landmark_id[sel] + off, t.z_px[sel]))
+        base += len(t.vehicles)
+    return ObservationTable.concatenate(names, parts)

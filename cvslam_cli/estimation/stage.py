@@ -70,6 +70,7 @@ from cvslam_cli.io.fuse_files import (
 )
 from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, require_logs, with_run_bindings
 from cvslam_cli.io.map_file import save_map
+from cvslam_cli.io.observations_file import save_observations
 from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
@@ -546,6 +547,13 @@ def _write_outputs(
         metadata=meta,
         **viewer,
     )
+    _write_observations(out, res)
+
+
+def _write_observations(out: FuseFolder, res: SlamResult) -> None:
+    """The observations the filter used, for `cvslam refine` (docs/fuse_outputs.md)."""
+    if res.observations is not None:
+        save_observations(out.observations, res.observations)
 
 
 def _header(kind: str) -> str:

@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.observation_log import ObservationLog
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.features import FeatureSet
@@ -64,7 +65,8 @@ class VehicleRun:
     """Per-vehicle bookkeeping during a run: `index` (its bit in the landmark book), the time
     its state was predicted to (`t_ns`), the estimates recorded at its frames (`stamps_ns`, vehicle
     states x (n,), pose covariances (6, 6)), when its pose became known (its start, or when
-    it was localised; None while unknown) and its last frame's candidates."""
+    it was localised; None while unknown), its last frame's candidates and the observations
+    it made (`observation_log.py`)."""
 
     vin: VehicleInput
     index: int
@@ -74,6 +76,7 @@ class VehicleRun:
     x: list[F64] = field(default_factory=list)
     pose_cov: list[F64] = field(default_factory=list)
     candidates: Candidates | None = None
+    observations: ObservationLog = field(default_factory=ObservationLog)  # for refine
 
     @staticmethod
     def start(vin: VehicleInput, index: int) -> VehicleRun:

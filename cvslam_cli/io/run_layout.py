@@ -6,7 +6,8 @@ stage finds its inputs there. No other module spells these names.
 <run>/.lock, <run>/cvslam.log           RunLayout.lock_file, log_file (`RunDir.session`)
 <run>/features/<v>.npz, <v>_stats.csv   RunLayout.feature_file, feature_stats
 <run>/features/extract.config.yaml      RunLayout.extract_config
-<run>/fuse*/                            FuseFolder (fuse, fuse_single, fuse_ekf, fuse_ekf_single)
+<run>/fuse*/                            FuseFolder (fuse, fuse_single, fuse_ekf, fuse_ekf_single,
+                                        fuse_refined)
 <run>/fuse*_diverged_timeline.csv       RunLayout.diverged_timeline
 <run>/mosaic*/                          MosaicFolder (mosaic, mosaic_deadreckoning, ...)
 <run>/eval/                             EvalFolder
@@ -57,6 +58,7 @@ FUSE = fuse_name()
 FUSE_SINGLE = fuse_name(single=True)
 FUSE_EKF = fuse_name("ekf")
 FUSE_EKF_SINGLE = fuse_name("ekf", single=True)
+FUSE_REFINED = "fuse_refined"  # `cvslam refine`: the batch solution over a fuse run
 
 
 def mosaic_name(source: str = "fused") -> str:
@@ -113,6 +115,11 @@ class FuseFolder:
     @property
     def result_mcap(self) -> Path:
         return self.path / "result.mcap"
+
+    @property
+    def observations(self) -> Path:
+        """Every landmark observation the run used (`io/observations_file.py`; refine)."""
+        return self.path / "observations.npz"
 
     @property
     def resolved_config(self) -> Path:
