@@ -843,6 +843,71 @@ def do_mosaic(
     )
 
 
+# ----------------------------------------------------------------------------- refine
+
+
+@cli.command()
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option(
+    "--source",
+    type=click.Choice(["fuse", "fuse_ekf", "fuse_single", "fuse_ekf_single"]),
+    default=None,
+    help="The fuse folder refined (default: refine.source, fuse). Outputs go to "
+    "RUN_DIR/fuse_refined (RUN_DIR/<source>_refined for another source).",
+)
+@_log_option("the motion data")
+@_FORCE_STAGE
+@config_options
+def refine(
+    run_dir: Path, source: str | None, log_paths: tuple[Path, ...], force: bool, cfg: Config
+) -> None:
+    """Batch solution over a fuse run: one factor graph (bundle adjustment with the IMU,
+    odometry or constant-velocity motion between keyframes) solved with GTSAM.
+
+    Writes trajectories, pose covariances, the map and result.mcap to RUN_DIR/fuse_refined
+    in the fuse formats (docs/refine.md); mosaic (mosaic.fuse_dir) and eval pick it up.
+    """
+    paths, cfg = bound_logs(log_paths, cfg)
+    do_refine(cfg, run_dir, source=source, log_paths=paths, force=force)
+
+
+def do_refine(
+    cfg: Config, run_dir: Path, *, source: str | None, log_paths: Sequence[Path], force: bool
+) -> None:
+    from cvslam_cli.refine.stage import run
+
+    with run_session(run_dir, "refine"):
+        summary = run(
+            cfg,
+            run_dir,
+            source=source,
+            log_paths=list(log_paths),
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+        )
+        if summary.skipped:
+            return
+        write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
+    for name, v in summary.vehicles.items():
+        errors = (
+            f"position RMSE {v.rmse_source_m:.3f} m ({summary.source}) -> {v.rmse_m:.3f} m"
+            if v.rmse_m == v.rmse_m  # NaN: no ground truth
+            else "no ground truth to compare with"
+        )
+        log.info(
+            "%s: %d keyframes (%s), %s; gauge: prior on the first keyframe (sigma %.3g m, "
+            "%.3g rad)",
+            name, v.keyframes, v.model, errors, v.prior_sigma_position_m,
+            v.prior_sigma_attitude_rad,
+        )  # fmt: skip
+    log.info(
+        "refine: %d landmarks, %d observations (%d outliers), error %.4g -> %.4g in %d "
+        "iterations, %.1f s; wrote %s",
+        summary.landmarks, summary.observations, summary.outliers, summary.initial_error,
+        summary.final_error, summary.iterations, summary.wall_s, summary.out_dir,
+    )  # fmt: skip
+
+
 # ----------------------------------------------------------------------------- eval, run
 
 _GT_HELP = (
@@ -946,6 +1011,9 @@ def do_run(
     do_extract(cfg, list(logs), run_dir, workers=workers, force=force)
     do_fuse(cfg, run_dir, filter_kind="hinf", single=False, log_paths=(), force=force)
     for comparison in cfg.run.comparisons:
+        if comparison == "refined":  # the batch solution over the cooperative run
+            do_refine(cfg, run_dir, source="fuse", log_paths=(), force=force)
+            continue
         filter_kind = "ekf" if comparison.startswith("ekf") else "hinf"
         single = comparison.endswith("single")
         do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=(), force=force)

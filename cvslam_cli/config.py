@@ -372,13 +372,33 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
+class RefineConfig:
+    """`cvslam refine`: the fuse folder refined (its trajectories, map and observations),
+    keyframes (every n-th frame of each vehicle), the pixel noise of the reprojection
+    factors (0: the features' own, extract.stereo.pixel_sigma_px or the simulator's pixel
+    noise), the robust kernel and its threshold (in standard deviations), the standard
+    deviation holding a ground robot's height, roll and pitch, Levenberg-Marquardt's limits,
+    and whether the landmarks' marginal covariances are computed (map std columns)."""
+
+    source: Literal["fuse", "fuse_ekf", "fuse_single", "fuse_ekf_single"] = "fuse"
+    every_nth: int = opt(1, lo=1)
+    pixel_sigma_px: float = opt(0.0, lo=0.0)
+    robust: Literal["huber", "cauchy", "none"] = "huber"
+    robust_k: float = opt(1.345, lo=0.0, lo_open=True)
+    planar_sigma: float = opt(0.001, lo=0.0, lo_open=True)
+    max_iterations: int = opt(50, lo=1)
+    relative_error_tol: float = opt(1e-6, lo=0.0)
+    landmark_covariances: bool = True
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """`cvslam run`: the fuse runs made besides the cooperative NH-infinity one, for
-    comparison (single: each vehicle alone; ekf: the EKF; ekf_single), whether to
-    make mosaics, and the dataset the run is of (metrics.csv; empty: the run directory's
-    name)."""
+    comparison (single: each vehicle alone; ekf: the EKF; ekf_single; refined: `cvslam
+    refine` of the cooperative run), whether to make mosaics, and the dataset the run is of
+    (metrics.csv; empty: the run directory's name)."""
 
-    comparisons: tuple[Literal["single", "ekf", "ekf_single"], ...] = ("single", "ekf")
+    comparisons: tuple[Literal["single", "ekf", "ekf_single", "refined"], ...] = ("single", "ekf")
     mosaic: bool = True
     dataset: str = ""
 
@@ -411,6 +431,7 @@ class Config:
     fuse: FuseConfig = opt(FuseConfig())
     mosaic: MosaicConfig = opt(MosaicConfig())
     eval: EvalConfig = opt(EvalConfig())
+    refine: RefineConfig = opt(RefineConfig())
     run: RunConfig = opt(RunConfig())
     geo: GeoConfig = opt(GeoConfig())
 

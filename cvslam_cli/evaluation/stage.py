@@ -2,7 +2,8 @@
 figures like the paper's, one self-contained HTML report (docs/eval.md).
 
 Estimates: each fuse folder present (`fuse` cooperative NH-infinity, `fuse_single`,
-`fuse_ekf`, `fuse_ekf_single`) and the dead reckoning (`fuse/<vehicle>_deadreckoning.tum`).
+`fuse_ekf`, `fuse_ekf_single`, `fuse_refined` from `cvslam refine`) and the dead reckoning
+(`fuse/<vehicle>_deadreckoning.tum`).
 Truth: `--gt` files (TUM or KITTI, named `<vehicle>.*` or given as `VEHICLE=FILE`), else the
 logs' ground-truth topic. Per estimate and vehicle (`metrics.py`, evo's definitions): ATE
 (RMSE, mean, median, max; no alignment unless `eval.align`), RPE over travelled distances
@@ -57,6 +58,7 @@ from cvslam_cli.io.run_layout import (
     FUSE,
     FUSE_EKF,
     FUSE_EKF_SINGLE,
+    FUSE_REFINED,
     FUSE_SINGLE,
     MERGED_MOSAIC,
     MOSAIC,
@@ -64,6 +66,7 @@ from cvslam_cli.io.run_layout import (
     FuseFolder,
     MosaicFolder,
     RunLayout,
+    refined_name,
 )
 from cvslam_cli.io.rundir import RunDir, input_record
 from cvslam_cli.io.trajectory import read_trajectory_file, read_tum
@@ -77,6 +80,11 @@ RUN_LABELS = {
     FUSE_SINGLE: "single NH-inf",
     FUSE_EKF: "cooperative EKF",
     FUSE_EKF_SINGLE: "single EKF",
+    # `cvslam refine` of each (the batch solution over the same observations)
+    FUSE_REFINED: "refined",
+    refined_name(FUSE_EKF): "refined EKF",
+    refined_name(FUSE_SINGLE): "refined single",
+    refined_name(FUSE_EKF_SINGLE): "refined single EKF",
 }
 DR_LABEL = "dead reckoning"
 # the NEES figure starts each line at the first pose whose NEES a consistent filter exceeds
@@ -430,7 +438,10 @@ def _comparison_figures(
 ) -> Iterator[_Figure]:
     """Position errors of runs compared, where both runs of a pair were made; single vs
     cooperative only for a team (a lone vehicle's two runs are the same filter)."""
-    pairs = [(FUSE_EKF, FUSE, "EKF vs NH-infinity", "filters")]
+    pairs = [
+        (FUSE_EKF, FUSE, "EKF vs NH-infinity", "filters"),
+        (FUSE, FUSE_REFINED, "filter vs refined (batch)", "refined"),
+    ]
     if len(fleet) > 1:
         pairs.insert(0, (FUSE_SINGLE, FUSE, "single vs cooperative (paper Fig. 13/17)", "coop"))
     for v in sorted(truth):

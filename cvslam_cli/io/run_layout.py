@@ -58,7 +58,15 @@ FUSE = fuse_name()
 FUSE_SINGLE = fuse_name(single=True)
 FUSE_EKF = fuse_name("ekf")
 FUSE_EKF_SINGLE = fuse_name("ekf", single=True)
-FUSE_REFINED = "fuse_refined"  # `cvslam refine`: the batch solution over a fuse run
+
+
+def refined_name(source: str = "fuse") -> str:
+    """The folder `cvslam refine` writes for a fuse folder: `fuse_refined` for `fuse`,
+    `<source>_refined` otherwise (`fuse_ekf_refined`, ...)."""
+    return f"{source}_refined"
+
+
+FUSE_REFINED = refined_name()
 
 
 def mosaic_name(source: str = "fused") -> str:

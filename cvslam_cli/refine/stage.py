@@ -1,0 +1,346 @@
+"""`cvslam refine`: the batch solution over a fuse run (package docstring, docs/refine.md).
+
+Inputs: `<run>/<source>/` (a fuse folder: trajectories, `map.csv`, `observations.npz`), the
+run's features (rig, pixel noise) and logs (motion data, the filter's initial poses).
+Outputs, in `<run>/fuse_refined/` (`<source>_refined/` for another source), the fuse
+folder's formats (docs/fuse_outputs.md), written to a temporary folder renamed when
+complete: per vehicle `<v>.tum` (the keyframes' refined poses), `<v>_pose_cov.npz` (their
+marginal covariances), `<v>_deadreckoning.tum` (the source's, for the same comparisons);
+`map.csv`, `map.ply` (every landmark of the source map: the refined ones moved, with their
+marginal standard deviations), `result.mcap`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+from tqdm import tqdm
+
+from cvslam_cli import __version__
+from cvslam_cli.config import Config
+from cvslam_cli.errors import CvslamError
+from cvslam_cli.estimation.stage import build_inputs
+from cvslam_cli.geometry.rotations import interpolate_positions, matrix_to_quat_xyzw
+from cvslam_cli.io.atomic import atomic_dir, check_writable
+from cvslam_cli.io.features_file import load_features
+from cvslam_cli.io.fuse_files import (
+    read_map_csv,
+    save_pose_covariances,
+    write_map_csv,
+    write_map_ply,
+    write_result_mcap,
+)
+from cvslam_cli.io.logs import all_log_paths, open_logs, require_logs, with_run_bindings
+from cvslam_cli.io.observations_file import load_observations
+from cvslam_cli.io.run_layout import FuseFolder, RunLayout, refined_name
+from cvslam_cli.io.rundir import RunDir
+from cvslam_cli.io.trajectory import read_tum, write_tum
+from cvslam_cli.records.landmarks import LandmarkMap
+from cvslam_cli.records.poses import PoseTable
+from cvslam_cli.refine import graph
+from cvslam_cli.refine.build import build_problem
+from cvslam_cli.refine.problem import RefineProblem, RefineResult, RefineSettings
+
+log = logging.getLogger("cvslam.refine")
+
+
+@dataclass(frozen=True)
+class VehicleRefine:
+    keyframes: int
+    model: str
+    rmse_source_m: float  # position RMSE of the source at the keyframes (nan: no truth)
+    rmse_m: float
+    prior_sigma_position_m: float  # the gauge: the prior on the first keyframe
+    prior_sigma_attitude_rad: float
+
+
+@dataclass(frozen=True)
+class RefineSummary:
+    out_dir: Path
+    skipped: bool
+    source: str
+    vehicles: dict[str, VehicleRefine]
+    landmarks: int
+    observations: int
+    factors: dict[str, int]
+    iterations: int
+    initial_error: float
+    final_error: float
+    outliers: int
+    pixel_sigma_px: float
+    wall_s: float
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def feature_pixel_sigma(metas: Sequence[dict[str, Any]]) -> float | None:
+    """The pixel noise the features were made with: extract's `stereo.pixel_sigma_px`, or the
+    simulator's landmark-mode `pixel_noise_px`; the largest over the files, None if unknown."""
+    found = []
+    for meta in metas:
+        sigma = meta.get("config", {}).get("stereo", {}).get("pixel_sigma_px")
+        if sigma is None:
+            sigma = meta.get("landmarks", {}).get("pixel_noise_px")
+        if sigma is not None:
+            found.append(float(sigma))
+    return max(found) if found else None
+
+
+def settings_of(cfg: Config, metas: Sequence[dict[str, Any]]) -> RefineSettings:
+    rc = cfg.refine
+    sigma = rc.pixel_sigma_px
+    if sigma == 0:
+        known = feature_pixel_sigma(metas)
+        if known is None:
+            sigma = cfg.fuse.association.pixel_sigma_px
+            log.warning(
+                "refine: the feature files do not say their pixel noise; using "
+                "fuse.association.pixel_sigma_px = %g px (refine.pixel_sigma_px to set it)",
+                sigma,
+            )
+        else:
+            sigma = known
+    return RefineSettings(
+        pixel_sigma_px=sigma,
+        robust=rc.robust,
+        robust_k=rc.robust_k,
+        planar_sigma=rc.planar_sigma,
+        max_iterations=rc.max_iterations,
+        relative_error_tol=rc.relative_error_tol,
+        landmark_covariances=rc.landmark_covariances,
+    )
+
+
+def _source_files(src: FuseFolder, vehicles: Sequence[str]) -> list[Path]:
+    """The source fuse folder's files refine reads; CvslamError naming the first missing."""
+    files = [src.map_csv, src.observations, *(src.trajectory(v) for v in vehicles)]
+    for path in files:
+        if not path.exists():
+            remedy = (
+                "it was written by a cvslam without observations: run `cvslam fuse --force`"
+                if path == src.observations and src.map_csv.exists()
+                else f"run `cvslam fuse` first ({src.name})"
+            )
+            raise CvslamError(f"{path}: not found; {remedy}")
+    return files
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _pose_table(stamps_ns: np.ndarray, T: np.ndarray) -> PoseTable:
+    q = np.array([matrix_to_quat_xyzw(t[:3, :3]) for t in T]).reshape(-1, 4)
+    return PoseTable(stamps_ns.astype(np.int64), T[:, :3, 3].copy(), q)
+
+
+def refined_map(source: LandmarkMap, problem: RefineProblem, res: RefineResult) -> LandmarkMap:
+    """The source map with the refined landmarks moved (and their marginal std devs)."""
+    p = source.p_nav_m.copy()
+    std = source.std_m.copy()
+    row_of = {int(i): r for r, i in enumerate(source.landmark_id)}
+    rows = np.array([row_of[int(i)] for i in problem.landmark_id], dtype=np.int64)
+    if len(rows):
+        p[rows] = res.p_nav_m
+        std[rows] = np.sqrt(np.maximum(np.diagonal(res.cov, axis1=1, axis2=2), 0.0))
+    return dataclasses.replace(source, p_nav_m=p, std_m=std)
+
+
+def _rmse(table: PoseTable, truth: PoseTable | None) -> float:
+    if truth is None or len(truth) == 0 or len(table) == 0:
+        return float("nan")
+    e = np.linalg.norm(
+        table.p_nav_m - interpolate_positions(truth.stamps_ns, truth.p_nav_m, table.stamps_ns),
+        axis=1,
+    )
+    e = e[np.isfinite(e)]
+    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
+
+
+def _header(source: str) -> str:
+    return f"cvslam {__version__} refine (of {source}), nav frame NED, body FRD"
+
+
+def _write(
+    out: FuseFolder,
+    src: FuseFolder,
+    tables: dict[str, PoseTable],
+    res: RefineResult,
+    lm: LandmarkMap,
+    source: str,
+) -> None:
+    header = _header(source)
+    dr = {}
+    for v in res.vehicles:
+        write_tum(out.trajectory(v.name), tables[v.name], header=f"{header}\nvehicle {v.name}")
+        save_pose_covariances(out.pose_covariances(v.name), v.stamps_ns, v.pose_cov)
+        dr_path = src.trajectory(v.name, deadreckoning=True)
+        if dr_path.exists():
+            dr[v.name] = read_tum(dr_path)
+            write_tum(
+                out.trajectory(v.name, deadreckoning=True),
+                dr[v.name],
+                header=f"{header}\nvehicle {v.name}: dead reckoning (as in {source})",
+            )
+    write_map_csv(out.map_csv, lm)
+    write_map_ply(out.map_ply, lm)
+    meta = {"refine": source, "mode": "batch", "cvslam_version": __version__}
+    write_result_mcap(out.result_mcap, tables, lm, deadreckoning=dr, metadata=meta)
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def _solve(
+    problem: RefineProblem, settings: RefineSettings, progress: bool
+) -> tuple[RefineResult, float]:
+    t0 = time.perf_counter()
+    g = graph.build(problem, settings)
+    log.info(
+        "refine: %d keyframes, %d landmarks, %d observations; factors %s",
+        sum(len(v.stamps_ns) for v in problem.vehicles),
+        len(problem.landmark_id),
+        len(problem.z_px),
+        ", ".join(f"{k} {n}" for k, n in g.factors.items() if n),
+    )
+    bar = tqdm(
+        total=settings.max_iterations, desc="refine (LM)", unit="it",
+        disable=None if progress else True, leave=False,
+    )  # fmt: skip
+
+    def step(it: int, error: float) -> None:
+        bar.update(1)
+        bar.set_postfix(error=f"{error:.4g}")
+        log.debug("refine: iteration %d, error %.6g", it, error)
+
+    with bar:
+        values, e0, e1, iterations = graph.solve(g, settings, step)
+    log.info("refine: error %.6g -> %.6g in %d iterations; marginals", e0, e1, iterations)
+    res = graph.result(problem, g, values, settings, e0, e1, iterations)
+    return res, time.perf_counter() - t0
+
+
+def run(
+    cfg: Config,
+    run_dir: Path,
+    *,
+    source: str | None = None,
+    log_paths: Sequence[Path] = (),
+    force: bool = False,
+    progress: bool = False,
+) -> RefineSummary:
+    source = source or cfg.refine.source
+    cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, source=source))
+    layout = RunLayout(run_dir)
+    src = layout.fuse(source)
+    out = layout.fuse(refined_name(source))
+    if not src.has_trajectories():
+        raise CvslamError(f"{src.path}: no fuse output (<vehicle>.tum); run `cvslam fuse` first")
+    feature_files = layout.feature_files(f"run `cvslam extract LOG... -o {layout.root}` first")
+    loaded = [load_features(p) for p in feature_files]
+    features = {fs.vehicle: fs for fs, _ in loaded}
+    metas = [m for _, m in loaded]
+    vehicles = [v for v in src.vehicles() if v in features]
+    src_files = _source_files(src, vehicles)
+    cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
+    logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
+    require_logs(logs_used)
+    rd = RunDir(run_dir)
+    outputs = [out.map_csv, out.result_mcap, *(out.trajectory(v) for v in vehicles)]
+    inputs_used = [*feature_files, *logs_used, *src_files]
+    plan = rd.plan(out.name, cfg, ("logs", "fuse", "refine"), inputs_used, outputs, force)
+    if plan.action == "skip":
+        log.info("refine: %s is up to date (same config and inputs); --force to redo it", out.path)
+        return RefineSummary(out.path, True, source, {}, 0, 0, {}, 0, 0.0, 0.0, 0, 0.0, 0.0)
+    check_writable(outputs)
+    t_start = time.perf_counter()
+    logs = open_logs(logs_used, cfg.logs)
+    vin, truth = build_inputs(cfg, {v: features[v] for v in vehicles}, logs)
+    tracks = {v: read_tum(src.trajectory(v)) for v in vehicles}
+    observations = load_observations(src.observations)
+    source_map = read_map_csv(src.map_csv)
+    settings = settings_of(cfg, metas)
+    try:
+        problem = build_problem(
+            vin, tracks, observations, source_map.landmark_id, source_map.p_nav_m,
+            cfg.refine.every_nth,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise CvslamError(f"{src.path}: {exc}; run `cvslam fuse --force`") from None
+    if not len(problem.z_px):
+        raise CvslamError(
+            f"{src.observations}: no landmark seen from two keyframes; nothing to refine"
+        )
+    # the sparse factorisations gain from threads, unlike the filter's small matrices
+    with threadpool_limits(limits=None):
+        res, _ = _solve(problem, settings, progress)
+    tables = {v.name: _pose_table(v.stamps_ns, v.T_nav_body) for v in res.vehicles}
+    lm = refined_map(source_map, problem, res)
+    with atomic_dir(out.path) as tmp:
+        _write(FuseFolder(tmp), src, tables, res, lm, source)
+    wall = time.perf_counter() - t_start
+    summary = _summary(out.path, source, problem, res, tracks, tables, truth, settings, wall)
+    rd.record(out.name, plan, outputs, _record(summary), wall)
+    return summary
+
+
+def _summary(
+    out_dir: Path,
+    source: str,
+    problem: RefineProblem,
+    res: RefineResult,
+    tracks: dict[str, PoseTable],
+    tables: dict[str, PoseTable],
+    truth: dict[str, PoseTable],
+    settings: RefineSettings,
+    wall: float,
+) -> RefineSummary:
+    vehicles = {}
+    for v in problem.vehicles:
+        src = tracks[v.name]
+        at_kf = np.isin(src.stamps_ns, v.stamps_ns)
+        src_kf = PoseTable(src.stamps_ns[at_kf], src.p_nav_m[at_kf], src.q_nav_body_xyzw[at_kf])
+        J = v.model.pose_jacobian(v.x_first)
+        prior = J @ v.P_first @ J.T
+        vehicles[v.name] = VehicleRefine(
+            keyframes=len(v.stamps_ns),
+            model=v.model.kind,
+            rmse_source_m=_rmse(src_kf, truth.get(v.name)),
+            rmse_m=_rmse(tables[v.name], truth.get(v.name)),
+            prior_sigma_position_m=float(np.sqrt(np.trace(prior[:3, :3]))),
+            prior_sigma_attitude_rad=float(np.sqrt(np.trace(prior[3:, 3:]))),
+        )
+    return RefineSummary(
+        out_dir, False, source, vehicles, len(problem.landmark_id), len(problem.z_px),
+        res.factors, res.iterations, res.initial_error, res.final_error, res.outliers,
+        settings.pixel_sigma_px, wall,
+    )  # fmt: skip
+
+
+def _record(s: RefineSummary) -> dict[str, Any]:
+    """The refine run's summary in run.yaml (the gauge: the prior on each first keyframe)."""
+    return {
+        "source": s.source,
+        "gauge": "prior on each vehicle's first keyframe: the filter's initial state "
+        "predicted to it (fuse.initial)",
+        "vehicles": {
+            k: {kk: round(float(x), 6) if isinstance(x, float) else x for kk, x in vars(v).items()}
+            for k, v in s.vehicles.items()
+        },
+        "landmarks": s.landmarks,
+        "observations": s.observations,
+        "factors": s.factors,
+        "iterations": s.iterations,
+        "initial_error": round(s.initial_error, 3),
+        "final_error": round(s.final_error, 3),
+        "outliers": s.outliers,
+        "pixel_sigma_px": s.pixel_sigma_px,
+    }
