@@ -100,13 +100,19 @@ def _translation_error(dt: float) -> Callable[..., F64]:
             Hi[0:3, 3:6] = -Ti.rotation().matrix()
             Hj = np.zeros((6, 6))
             Hj[0:3, 3:6] = Tj.rotation().matrix()
-            H[0] = Hi
-            H[1] = np.vstack([-np.eye(3) * dt, -np.eye(3)])
-            H[2] = Hj
-            H[3] = np.vstack([np.zeros((3, 3)), np.eye(3)])
+            _fill_jacobians(H, Hi, Hj, dt)
         return e
 
     return error
+
+
+def _fill_jacobians(H: list, H_pose_i: F64, H_pose_j: F64, dt: float) -> None:
+    """The Jacobians of a white-noise pair error [a_j - a_i - r_i dt; r_j - r_i] over keys
+    (pose i, rate i, pose j, rate j), given the pose blocks."""
+    H[0] = H_pose_i
+    H[1] = np.vstack([-np.eye(3) * dt, -np.eye(3)])
+    H[2] = H_pose_j
+    H[3] = np.vstack([np.zeros((3, 3)), np.eye(3)])
 
 
 def _rotation_error(dt: float) -> Callable[..., F64]:
@@ -123,10 +129,7 @@ def _rotation_error(dt: float) -> Callable[..., F64]:
             Hi[0:3, 0:3] = -Jinv @ M.matrix().T
             Hj = np.zeros((6, 6))
             Hj[0:3, 0:3] = Jinv
-            H[0] = Hi
-            H[1] = np.vstack([-np.eye(3) * dt, -np.eye(3)])
-            H[2] = Hj
-            H[3] = np.vstack([np.zeros((3, 3)), np.eye(3)])
+            _fill_jacobians(H, Hi, Hj, dt)
         return e
 
     return error
