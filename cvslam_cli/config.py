@@ -388,7 +388,7 @@ class RefineConfig:
     planar_sigma: float = opt(0.001, lo=0.0, lo_open=True)
     max_iterations: int = opt(50, lo=1)
     relative_error_tol: float = opt(1e-6, lo=0.0)
-    landmark_covariances: bool = True
+    landmark_covariances: bool = False
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from cvslam_cli.refine.problem import (
 # an observation is counted an outlier at the solution beyond this (4 dof, both images)
 OUTLIER_PROBABILITY = 0.999
 # keys per joint marginal query (`marginal_covariances`)
-MARGINAL_BATCH = 20
+MARGINAL_BATCH = 100
 
 
 def X(i: int) -> int:
@@ -302,8 +302,8 @@ def marginal_covariances(
 ) -> F64:
     """(len(keys), d, d) marginal covariance of each key (all of one dimension d), from
     joint marginals over batches of consecutive keys: one query per batch shares the Bayes
-    tree's work (20 consecutive poses jointly cost a fifth of 20 queries alone;
-    BENCHMARKS.md, "Refine (issue 21)")."""
+    tree's work (on the two-UAV mission 300 poses cost 23 s in batches of 20, 11 s in
+    batches of 120; BENCHMARKS.md, "Refine (issue 21)")."""
     if batch == 1:
         return np.array([marginals.marginalCovariance(k) for k in keys])
     out = []

@@ -87,7 +87,7 @@ class RefineSettings:
     planar_sigma: float = 1e-3
     max_iterations: int = 50
     relative_error_tol: float = 1e-6
-    landmark_covariances: bool = True
+    landmark_covariances: bool = False
 
 
 @dataclass(frozen=True, eq=False)
