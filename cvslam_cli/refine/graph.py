@@ -270,14 +270,16 @@ def solve(
 def result(
     problem: RefineProblem, graph: Graph, values: gtsam.Values, settings: RefineSettings,
     error0: float, error1: float, iterations: int,
+    progress: Callable[[int], None] | None = None,
 ) -> RefineResult:  # fmt: skip
-    """The solution with its marginal covariances (poses in cvslam's (p, Psi) convention)."""
+    """The solution with its marginal covariances (poses in cvslam's (p, Psi) convention);
+    `progress(k)`: k more variables' marginals done."""
     marginals = gtsam.Marginals(graph.graph, values)
     vehicles = []
     for v, o in zip(problem.vehicles, graph.offsets, strict=True):
         K = len(v.stamps_ns)
         T = np.array([values.atPose3(X(o + k)).matrix() for k in range(K)]).reshape(K, 4, 4)
-        tangent = marginal_covariances(marginals, [X(o + k) for k in range(K)])
+        tangent = marginal_covariances(marginals, [X(o + k) for k in range(K)], progress=progress)
         cov = np.array([pose_cov_from_tangent(T[k], tangent[k]) for k in range(K)])
         cov = cov.reshape(K, 6, 6)
         J = v.model.pose_jacobian(v.x_first)
@@ -290,7 +292,9 @@ def result(
     lm_cov = np.full((n_l, 3, 3), np.nan)
     if settings.landmark_covariances and n_l:
         # one at a time: landmarks are not neighbours in the Bayes tree, their joint is large
-        lm_cov = marginal_covariances(marginals, [L(j) for j in range(n_l)], batch=1)
+        lm_cov = marginal_covariances(
+            marginals, [L(j) for j in range(n_l)], batch=1, progress=progress
+        )
     return RefineResult(
         tuple(vehicles), p, lm_cov, error0, error1, iterations, dict(graph.factors),
         _outliers(problem, graph, values, settings),
@@ -298,19 +302,25 @@ def result(
 
 
 def marginal_covariances(
-    marginals: gtsam.Marginals, keys: list[int], batch: int = MARGINAL_BATCH
+    marginals: gtsam.Marginals,
+    keys: list[int],
+    batch: int = MARGINAL_BATCH,
+    progress: Callable[[int], None] | None = None,
 ) -> F64:
     """(len(keys), d, d) marginal covariance of each key (all of one dimension d), from
     joint marginals over batches of consecutive keys: one query per batch shares the Bayes
     tree's work (on the two-UAV mission 300 poses cost 23 s in batches of 20, 11 s in
     batches of 120; BENCHMARKS.md, "Refine (issue 21)")."""
-    if batch == 1:
-        return np.array([marginals.marginalCovariance(k) for k in keys])
     out = []
     for i in range(0, len(keys), batch):
         chunk = keys[i : i + batch]
-        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(chunk))
-        out.extend(joint.at(k, k) for k in chunk)
+        if batch == 1:
+            out.append(marginals.marginalCovariance(chunk[0]))
+        else:
+            joint = marginals.jointMarginalCovariance(gtsam.KeyVector(chunk))
+            out.extend(joint.at(k, k) for k in chunk)
+        if progress is not None:
+            progress(len(chunk))
     return np.array(out)
 
 

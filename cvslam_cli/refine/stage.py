@@ -224,7 +224,15 @@ def _solve(
     with bar:
         values, e0, e1, iterations = graph.solve(g, settings, step)
     log.info("refine: error %.6g -> %.6g in %d iterations; marginals", e0, e1, iterations)
-    res = graph.result(problem, g, values, settings, e0, e1, iterations)
+    n = sum(len(v.stamps_ns) for v in problem.vehicles)
+    if settings.landmark_covariances:
+        n += len(problem.landmark_id)
+    bar = tqdm(
+        total=n, desc="refine (marginals)", unit="var", disable=None if progress else True,
+        leave=False,
+    )  # fmt: skip
+    with bar:
+        res = graph.result(problem, g, values, settings, e0, e1, iterations, bar.update)
     return res, time.perf_counter() - t0
 
 
