@@ -36,10 +36,10 @@ from cvslam_cli.io.fuse_files import (
     save_pose_covariances,
     write_map_csv,
     write_map_ply,
-    write_result_mcap,
 )
 from cvslam_cli.io.logs import all_log_paths, open_logs, require_logs, with_run_bindings
 from cvslam_cli.io.observations_file import load_observations
+from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, refined_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum, write_tum
@@ -193,7 +193,10 @@ def _write(
     write_map_csv(out.map_csv, lm)
     write_map_ply(out.map_ply, lm)
     meta = {"refine": source, "mode": "batch", "cvslam_version": __version__}
-    write_result_mcap(out.result_mcap, tables, lm, deadreckoning=dr, metadata=meta)
+    write_result_mcap(
+        out.result_mcap, tables, lm, pose_covariances={v.name: v.pose_cov for v in res.vehicles},
+        deadreckoning=dr, metadata=meta,
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- stage
