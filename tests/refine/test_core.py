@@ -4,15 +4,16 @@ file and its landmark ids under `--single`."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import gtsam
 import numpy as np
 import pytest
 
 from cvslam_cli.estimation.motion.models import ConstantVelocityModel, OdometryModel
-from cvslam_cli.estimation.slam import SlamResult, merge_results
+from cvslam_cli.estimation.slam import _merged_observations
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix, make_T
 from cvslam_cli.io.observations_file import load_observations, save_observations
-from cvslam_cli.records.landmarks import LandmarkMap
 from cvslam_cli.records.observations import ObservationTable
 from cvslam_cli.refine.graph import V, W, X
 from cvslam_cli.refine.keyframes import keep_observations, select_keyframes
@@ -128,23 +129,13 @@ def test_odometry_factor_measures_the_arc_the_robot_drove():
     np.testing.assert_allclose(f.unwhitenedError(values), 0.0, atol=1e-9)
 
 
-def _result(n_landmarks: int, table: ObservationTable) -> SlamResult:
-    lm = LandmarkMap(
-        landmark_id=np.arange(n_landmarks), p_nav_m=np.zeros((n_landmarks, 3)),
-        std_m=np.zeros((n_landmarks, 3)), observers=("a",) * n_landmarks,
-        n_observations=np.ones(n_landmarks, dtype=np.int64),
-        first_seen_ns=np.zeros(n_landmarks, dtype=np.int64),
-        last_seen_ns=np.zeros(n_landmarks, dtype=np.int64),
-        in_state=np.ones(n_landmarks, dtype=bool), true_id=np.full(n_landmarks, -1),
-    )  # fmt: skip
-    return SlamResult({}, [], [], lm, None, 0, table)
-
-
 def test_single_mode_renumbers_the_observed_landmark_ids_like_the_map(tmp_path):
     rng = np.random.default_rng(2)
     a = ObservationTable.concatenate(["uav1"], [(0, [1, 2], [0, 2], rng.normal(size=(2, 4)))])
     b = ObservationTable.concatenate(["uav2"], [(0, [3], [1], rng.normal(size=(1, 4)))])
-    merged = merge_results([_result(3, a), _result(2, b)]).observations
+    # merge_results numbers run k's landmarks after the runs before it (merge_archives)
+    runs = [SimpleNamespace(observations=a), SimpleNamespace(observations=b)]
+    merged = _merged_observations(runs, np.cumsum([0, 3, 2]))
     assert merged is not None
     assert merged.vehicles == ("uav1", "uav2")
     assert merged.vehicle.tolist() == [0, 0, 1]
