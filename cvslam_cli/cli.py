@@ -689,6 +689,32 @@ def fuse(
     do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=paths, force=force)
 
 
+def _fuse_folder_stage(
+    cfg: Config,
+    run_dir: Path,
+    command: str,
+    run: Callable[..., Any],
+    log_paths: Sequence[Path],
+    force: bool,
+    **options: Any,
+) -> Any:
+    """Run a stage that writes a fuse folder (fuse, refine) in the run's session and record
+    its resolved config there; its summary, or None when it was up to date."""
+    with run_session(run_dir, command):
+        summary = run(
+            cfg,
+            run_dir,
+            log_paths=list(log_paths),
+            force=force,
+            progress=log.isEnabledFor(logging.INFO),
+            **options,
+        )
+        if summary.skipped:
+            return None
+        write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
+    return summary
+
+
 def do_fuse(
     cfg: Config,
     run_dir: Path,
@@ -700,19 +726,11 @@ def do_fuse(
 ) -> None:
     from cvslam_cli.estimation.stage import run
 
-    with run_session(run_dir, "fuse"):
-        summary = run(
-            cfg,
-            run_dir,
-            filter_kind=filter_kind,
-            single=single,
-            log_paths=list(log_paths),
-            force=force,
-            progress=log.isEnabledFor(logging.INFO),
-        )
-        if summary.skipped:
-            return
-        write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
+    summary = _fuse_folder_stage(
+        cfg, run_dir, "fuse", run, log_paths, force, filter_kind=filter_kind, single=single
+    )
+    if summary is None:
+        return
     for name, v in summary.vehicles.items():
         errors = (
             f"final position error {v.final_error_m:.2f} m (dead reckoning "
@@ -876,18 +894,9 @@ def do_refine(
 ) -> None:
     from cvslam_cli.refine.stage import run
 
-    with run_session(run_dir, "refine"):
-        summary = run(
-            cfg,
-            run_dir,
-            source=source,
-            log_paths=list(log_paths),
-            force=force,
-            progress=log.isEnabledFor(logging.INFO),
-        )
-        if summary.skipped:
-            return
-        write_resolved_config(cfg, FuseFolder(summary.out_dir).resolved_config)
+    summary = _fuse_folder_stage(cfg, run_dir, "refine", run, log_paths, force, source=source)
+    if summary is None:
+        return
     for name, v in summary.vehicles.items():
         errors = (
             f"position RMSE {v.rmse_source_m:.3f} m ({summary.source}) -> {v.rmse_m:.3f} m"
