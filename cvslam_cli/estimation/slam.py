@@ -345,10 +345,6 @@ class Slam:
         if self.window is None:
             return
         free = out.types == TYPE_3
-        import os
-
-        if os.environ.get("TR_CANSTART"):
-            free &= frame.depth_sigma_ratio < float(os.environ["TR_CANSTART"])
         free[out.new_rows] = False
         out.window = self.window.step(
             run.vin, frame, np.flatnonzero(free), self.cooperation.bounded_vehicles()
