@@ -127,3 +127,23 @@ def monte_carlo_uav_scenario(outlier_fraction: float, duration_s: float) -> dict
             }
         },
     }
+
+
+def ekf_on_simulation(sim_dir: Path, cfg: Any) -> tuple[Any, Any]:
+    """The EKF over a simulated one-UAV run (`uav1`, landmark mode) with config `cfg`: its
+    SlamResult and uav1's ground-truth PoseTable (one BLAS thread: the Monte Carlo tests'
+    figures stay bit for bit)."""
+    from threadpoolctl import threadpool_limits
+
+    from cvslam_cli.estimation import stage
+    from cvslam_cli.estimation.slam import Slam
+    from cvslam_cli.io.features_file import load_features
+    from cvslam_cli.io.logs import LogSet
+    from cvslam_cli.io.mcap_source import McapLogSource
+
+    fs = {"uav1": load_features(sim_dir / "features" / "uav1.npz")[0]}
+    logs = LogSet([McapLogSource(sim_dir / "uav1.mcap")], cfg.logs)
+    inputs, truth = stage.build_inputs(cfg, fs, logs)
+    with threadpool_limits(limits=1, user_api="blas"):
+        res = Slam(inputs, stage.slam_settings(cfg.fuse, "ekf")).run()
+    return res, truth["uav1"]

@@ -13,18 +13,12 @@ import numpy as np
 import pytest
 import yaml
 from scipy.stats import chi2
-from threadpoolctl import threadpool_limits
 
 from cvslam_cli.config import load_config
-from cvslam_cli.estimation import stage
-from cvslam_cli.estimation.slam import Slam
 from cvslam_cli.geometry.rotations import interpolate_poses, matrix_to_euler_zyx
-from cvslam_cli.io.features_file import load_features
-from cvslam_cli.io.logs import LogSet
-from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.sim.scenario import load_scenario
 from cvslam_cli.sim.stage import run as simulate
-from tests.scenarios import MC_FILTER_OVERRIDES, monte_carlo_uav_scenario
+from tests.scenarios import MC_FILTER_OVERRIDES, ekf_on_simulation, monte_carlo_uav_scenario
 
 REPO = Path(__file__).resolve().parents[2]
 SEEDS = range(6)
@@ -52,13 +46,9 @@ def _nees(
     cfg = load_config(config_files, [*MC_FILTER_OVERRIDES, *overrides])
     pos, att = [], []
     for d in sims:
-        fs = {"uav1": load_features(d / "features" / "uav1.npz")[0]}
-        logs = LogSet([McapLogSource(d / "uav1.mcap")], cfg.logs)
-        inputs, truth = stage.build_inputs(cfg, fs, logs)
-        with threadpool_limits(limits=1, user_api="blas"):
-            res = Slam(inputs, stage.slam_settings(cfg.fuse, "ekf")).run()
-        tr, gt = res.tracks["uav1"], truth["uav1"]
+        res, gt = ekf_on_simulation(d, cfg)
         assert res.divergence is None
+        tr = res.tracks["uav1"]
         p_t, R_t, _ = interpolate_poses(gt.stamps_ns, gt.p_nav_m, gt.q_nav_body_xyzw, tr.stamps_ns)
         e = tr.p_nav_m - p_t
         de = tr.euler_rad - np.array([matrix_to_euler_zyx(R) for R in R_t])

@@ -10,24 +10,18 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import yaml
-from threadpoolctl import threadpool_limits
 
 from cvslam_cli.config import load_config
-from cvslam_cli.estimation import stage
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.new_landmarks import _anchored, _cartesian
 from cvslam_cli.estimation.reactivation import MAX_REACTIVATION_STD_M, Reactivation
 from cvslam_cli.estimation.settings import SlamSettings
-from cvslam_cli.estimation.slam import Slam
 from cvslam_cli.estimation.vehicle import VehiclePose
 from cvslam_cli.geometry.rotations import interpolate_poses
-from cvslam_cli.io.features_file import load_features
-from cvslam_cli.io.logs import LogSet
-from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.sim.scenario import load_scenario
 from cvslam_cli.sim.stage import run as simulate
 from tests.estimation.test_landmark_coordinates import _points, _state, _Vehicle
-from tests.scenarios import MC_FILTER_OVERRIDES, monte_carlo_uav_scenario
+from tests.scenarios import MC_FILTER_OVERRIDES, ekf_on_simulation, monte_carlo_uav_scenario
 
 
 def _mapped(name: str, k: int = 6):
@@ -160,13 +154,9 @@ def _loop_runs(sims: list[Path], *overrides: str) -> tuple[np.ndarray, float, in
     cfg = load_config((), [*MC_FILTER_OVERRIDES, *overrides])
     nees, err, reactivated = [], [], 0
     for d in sims:
-        fs = {"uav1": load_features(d / "features" / "uav1.npz")[0]}
-        logs = LogSet([McapLogSource(d / "uav1.mcap")], cfg.logs)
-        inputs, truth = stage.build_inputs(cfg, fs, logs)
-        with threadpool_limits(limits=1, user_api="blas"):
-            res = Slam(inputs, stage.slam_settings(cfg.fuse, "ekf")).run()
+        res, gt = ekf_on_simulation(d, cfg)
         assert res.divergence is None
-        tr, gt = res.tracks["uav1"], truth["uav1"]
+        tr = res.tracks["uav1"]
         p_t, _, _ = interpolate_poses(gt.stamps_ns, gt.p_nav_m, gt.q_nav_body_xyzw, tr.stamps_ns)
         e = tr.p_nav_m - p_t
         P = tr.pose_cov[:, :3, :3]
