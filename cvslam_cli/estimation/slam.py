@@ -19,15 +19,16 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
    (`association.classify`). A vehicle whose pose is not known yet is localised in the
    shared map instead (`cooperation.py`);
 3. update: one stacked EKF or NH-infinity update with those observations (eq. 19,
-   `update.py`, `filters.py`); loop closures and cross-vehicle observations are logged
-   (`events.py`);
+   `update.py`, `filters.py`) and the window's pending rows (step 5 of the frame before);
+   loop closures and cross-vehicle observations are logged (`events.py`);
 4. map: when fewer than `target_tracked` landmarks were updated, confirmed type-3 matches
    become landmarks, the state kept under its landmark bound by eviction
    (`new_landmarks.py`, `mapping.py`), and other vehicles' simultaneous observations of
    them are used at once (joint initialisation, `cooperation.py`);
 5. window (when `fuse.window.clones` > 0): the pose is cloned and the frame's remaining
-   points continue or start feature tracks; the tracks that end update the clones
-   (`window_update.py`, `tracks.py`: the MSCKF's use of the points never mapped);
+   points continue or start feature tracks; the rows of the tracks that end wait for the
+   next update (`window_update.py`, `tracks.py`: the MSCKF's use of the points never
+   mapped);
 6. record: pose and its covariance, one timeline row, and the divergence check (`events.py`).
 """
 
@@ -178,6 +179,8 @@ class Slam:
                 self.progress(1)
             if self.divergence is not None:
                 break
+        if self.divergence is None:
+            self._flush_window()
         return self._result()
 
     # ------------------------------------------------------------------ one frame
@@ -187,6 +190,7 @@ class Slam:
         self._predict(run, t_ns)
         frame = FrameMatches.of(run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio)
         localising = not run.localised
+        found = None
         if localising:  # pose unknown: localise in the shared map (an update of its own)
             out = self.cooperation.localise_vehicle(run, frame)
         else:
@@ -197,6 +201,8 @@ class Slam:
                 out.reactivated = reactivated
             if found is not None:
                 self._update(run, frame, found, out)
+        if found is None or localising:  # the window's pending rows, alone
+            self._flush_window()
         # landmark uncertainty of this frame's updated landmarks (before any eviction)
         lm_std = self._landmark_sigma(out.updated_slots)
         if not localising:
@@ -289,13 +295,16 @@ class Slam:
         s = self.settings
         vin = run.vin
         v_idx = self.state.vehicles[vin.name].index
+        extra = self.window.pending_rows() if self.window is not None else None
         res = self.updater.update(
             v_idx, found.pred, found.pred_rows, frame.z[found.match_rows],
-            self.cooperation.bounded_vehicles(),
+            self.cooperation.bounded_vehicles(), extra,
         )  # fmt: skip
+        if self.window is not None:
+            self.window.settle()
         k = len(found.pred_rows)
         types = found.types
-        out.nis, out.dof = res.nis, 4 * k
+        out.nis, out.dof = res.nis, 4 * k + (0 if extra is None else len(extra.r))
         out.gamma, out.gamma_raised = res.gamma, res.gamma_raised
         out.updated_slots = found.pred.slots[found.pred_rows]
         out.type1, out.type2 = types.count(TYPE_1), types.count(TYPE_2)
@@ -346,9 +355,12 @@ class Slam:
             return
         free = out.types == TYPE_3
         free[out.new_rows] = False
-        out.window = self.window.step(
-            run.vin, frame, np.flatnonzero(free), self.cooperation.bounded_vehicles()
-        )
+        out.window = self.window.step(run.vin, frame, np.flatnonzero(free))
+
+    def _flush_window(self) -> None:
+        """The window's pending rows applied alone (a frame without a landmark update)."""
+        if self.window is not None:
+            self.window.flush(self.cooperation.bounded_vehicles())
 
     def _next_candidates(self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome) -> None:
         """This frame's type-3 matches become the candidates the next frame may confirm

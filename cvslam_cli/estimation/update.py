@@ -4,12 +4,15 @@ EKF or NH-infinity update of the joint state (`filters.py`).
 Each observation z_j = (u_l, v_l, u_r, v_r) of landmark j gives 4 rows of H, touching the
 observing vehicle's block (H_v,j) and landmark j's columns (H_m,j: its 3, and its anchor's
 with anchored coordinates) only; the noise is the pixel noise, independent per coordinate
-(R = sigma_px^2 I), scaled by the filter (eq. 14).
+(R = sigma_px^2 I), scaled by the filter (eq. 14). Rows of another kind (the sliding
+window's, `window_update.py`) may be stacked into the same update: one pass over the
+covariance instead of two.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -18,6 +21,18 @@ from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateRes
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
 from cvslam_cli.records.arrays import F64, I64
+
+
+@dataclass(frozen=True, eq=False)
+class ExtraRows:
+    """Linear rows stacked into an update: innovation r (m,) ~ H (m, c) dx[cols] + noise of
+    covariance R (m, m) (unscaled: the filter scales it as the pixels'), cols (c,) state
+    columns."""
+
+    r: F64
+    H: F64
+    cols: I64
+    R: F64
 
 
 class VisualUpdater:
@@ -40,11 +55,17 @@ class VisualUpdater:
         return predict_in_state(self.state, vin, pose, slots, self.R_pixel_hat)
 
     def update(
-        self, v_idx: I64, pred: LandmarkPrediction, rows: I64, z: F64, bounded: Sequence[str]
+        self,
+        v_idx: I64,
+        pred: LandmarkPrediction,
+        rows: I64,
+        z: F64,
+        bounded: Sequence[str],
+        extra: ExtraRows | None = None,
     ) -> UpdateResult:
         """One update (eq. 19) with observations z (k, 4) of the predicted landmarks `pred`
-        rows `rows` (k,) by the vehicle whose state rows are v_idx; NH-infinity's bound on
-        the vehicles `bounded`."""
+        rows `rows` (k,) by the vehicle whose state rows are v_idx, and the `extra` rows if
+        any; NH-infinity's bound on the vehicles `bounded`."""
         k, nv = len(rows), len(v_idx)
         lm_cols = self.state.landmark_columns(pred.slots[rows])  # (k, d)
         d = lm_cols.shape[1]
@@ -55,7 +76,13 @@ class VisualUpdater:
         # linear in H's columns, so repeated state columns add up
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
         R = np.kron(np.eye(k), self.R_pixel)
+        y, h = z.reshape(-1), pred.z[rows].reshape(-1)
+        if extra is not None:  # block-diagonal: the two kinds of rows touch their own columns
+            m, c = extra.H.shape
+            H = np.block([[H, np.zeros((len(H), c))], [np.zeros((m, H.shape[1])), extra.H]])
+            cols = np.concatenate([cols, extra.cols])
+            R = np.block([[R, np.zeros((len(R), m))], [np.zeros((m, len(R))), extra.R]])
+            y, h = np.concatenate([y, extra.r]), np.concatenate([h, np.zeros(m)])
         return self.state.update(
-            self.settings, self.gamma, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R,
-            vehicles=bounded,
+            self.settings, self.gamma, y, h, H, cols, R, vehicles=bounded
         )  # fmt: skip

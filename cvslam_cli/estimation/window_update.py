@@ -28,12 +28,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cvslam_cli.estimation.association import spread_order
-from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult
+from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy
 from cvslam_cli.estimation.frame import FrameMatches, WindowOutcome
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.settings import WindowSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.tracks import TrackBook, TrackObservations
+from cvslam_cli.estimation.update import ExtraRows
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
 from cvslam_cli.records.arrays import F64, I64
 
@@ -41,13 +42,16 @@ from cvslam_cli.records.arrays import F64, I64
 @dataclass(frozen=True, eq=False)
 class TrackResiduals:
     """Null-space residuals of the tracks that passed the gate: r (m,), H (m, 6 C) over the
-    clones `clone_keys` (C,) in that order, and how many tracks were used / gated out."""
+    clones `clone_keys` (C,) in that order, how many tracks were used / gated out, and the
+    sum of the used tracks' gate statistics r0^T S0^-1 r0 (`nis`) with their rows (`dof`)."""
 
     r: F64
     H: F64
     clone_keys: I64
     used: int
     rejected: int
+    nis: float = float("nan")
+    dof: int = 0
 
 
 def fit_points(
@@ -95,6 +99,7 @@ def track_residuals(
     r_out: list[F64] = []
     H_out: list[F64] = []
     rejected = 0
+    nis, dof = 0.0, 0
     # observations grouped by track (stable: each track's in time order), tracks by length
     order = np.argsort(t.track, kind="stable")
     lengths = np.bincount(t.track, minlength=t.n_tracks)
@@ -114,6 +119,8 @@ def track_residuals(
         d2 = np.einsum("ki,ki->k", r0, np.linalg.solve(S0, r0[..., None])[..., 0])
         ok = np.isfinite(d2) & (d2 <= s.gate_chi2[4 * L - 3])
         rejected += int(n - ok.sum())
+        nis += float(d2[ok].sum())
+        dof += int(ok.sum()) * (4 * L - 3)
         r_out.extend(r0[ok])
         H_out.extend(H0[ok])
     if not r_out:
@@ -123,7 +130,7 @@ def track_residuals(
     if len(r) > H.shape[1]:  # QR compression: the same information in at most 6 C rows
         Q1, R1 = np.linalg.qr(H)
         r, H = Q1.T @ r, R1
-    return TrackResiduals(r, H, keys, len(r_out), rejected)
+    return TrackResiduals(r, H, keys, len(r_out), rejected, nis, dof)
 
 
 @dataclass(eq=False)
@@ -133,7 +140,14 @@ class _VehicleWindow:
 
 
 class SlidingWindow:
-    """The clones and tracks of every vehicle, and their update, on the joint `state`."""
+    """The clones and tracks of every vehicle, and their update, on the joint `state`.
+
+    The rows of the tracks that end in a frame wait for the next update (of any vehicle) and
+    are stacked into it (`pending_rows`, then `settle`), or applied alone when that frame has
+    none (`flush`): one pass over the covariance per frame instead of two. The wait changes
+    nothing the rows say: they touch only the clones, which no prediction moves, and a clone
+    leaving the window is released only once its rows are applied.
+    """
 
     def __init__(
         self,
@@ -150,12 +164,13 @@ class SlidingWindow:
         self.R_pixel = R_pixel
         self.R_pixel_hat = filter_settings.measurement_noise(R_pixel)
         self._windows: dict[str, _VehicleWindow] = {}
+        self._pending: list[TrackResiduals] = []
+        self._leaving: list[int] = []
 
-    def step(
-        self, vin: VehicleInput, frame: FrameMatches, free: I64, bounded: Sequence[str]
-    ) -> WindowOutcome:
+    def step(self, vin: VehicleInput, frame: FrameMatches, free: I64) -> WindowOutcome:
         """One frame of `vin`: clone its pose, continue or start tracks with the frame rows
-        `free`, update with the tracks that end, and let the oldest clone go."""
+        `free`, the rows of the tracks that end made pending, and the oldest clone let go
+        (once they are applied)."""
         s = self.settings
         st = self.state
         w = self._windows.setdefault(vin.name, _VehicleWindow())
@@ -178,7 +193,7 @@ class SlidingWindow:
         # tracks end when lost, or when their first clone is about to leave the window
         leaving = w.clones[0] if len(w.clones) > s.window else None
         ended = ~continued | (tracks.first_clones() == leaving)
-        res = self._update(vin, tracks.take(ended), bounded)
+        res = self._residuals(vin, tracks.take(ended))
         new = np.ones(len(free), dtype=bool)
         new[idx] = False
         room = max(0, s.max_tracks - len(tracks))
@@ -191,7 +206,7 @@ class SlidingWindow:
         tracks.start(free[pick], key, frame, m[pick], cov[pick])
         if leaving is not None:
             w.clones.pop(0)
-            st.release_anchor(leaving)
+            self._leaving.append(leaving)
         return WindowOutcome(len(cont), *res)
 
     def _clone(self, pose: VehiclePose) -> int:
@@ -204,18 +219,47 @@ class SlidingWindow:
         )  # fmt: skip
         return key
 
-    def _update(
-        self, vin: VehicleInput, t: TrackObservations, bounded: Sequence[str]
-    ) -> tuple[int, int, float, int]:
+    def _residuals(self, vin: VehicleInput, t: TrackObservations) -> tuple[int, int, float, int]:
+        """The ended tracks' gated rows made pending; (used, rejected, gate NIS, its dof)."""
         if t.n_tracks == 0:
             return 0, 0, float("nan"), 0
         tr = track_residuals(vin.obs, self.state, t, self.R_pixel_hat, self.settings)
         if not len(tr.r):
             return 0, tr.rejected, float("nan"), 0
-        cols = np.concatenate([self.state.anchor_rows(int(k)) for k in tr.clone_keys])
+        self._pending.append(tr)
+        return tr.used, tr.rejected, tr.nis, tr.dof
+
+    def pending_rows(self) -> ExtraRows | None:
+        """The pending rows as one block over the clones' present state columns (None if
+        there are none)."""
+        if not self._pending:
+            return None
+        cols = [
+            np.concatenate([self.state.anchor_rows(int(k)) for k in tr.clone_keys])
+            for tr in self._pending
+        ]
+        H = np.zeros((sum(len(tr.r) for tr in self._pending), sum(len(c) for c in cols)))
+        i = j = 0
+        for tr, c in zip(self._pending, cols, strict=True):
+            H[i : i + len(tr.r), j : j + len(c)] = tr.H
+            i, j = i + len(tr.r), j + len(c)
         sigma2 = float(self.R_pixel[0, 0])
-        res: UpdateResult = self.state.update(
-            self.filter, self.gamma, tr.r, np.zeros(len(tr.r)), tr.H, cols,
-            sigma2 * np.eye(len(tr.r)), vehicles=bounded,
-        )  # fmt: skip
-        return tr.used, tr.rejected, float(res.nis), len(tr.r)
+        r = np.concatenate([tr.r for tr in self._pending])
+        return ExtraRows(r, H, np.concatenate(cols), sigma2 * np.eye(len(r)))
+
+    def settle(self) -> None:
+        """The pending rows have been applied: forget them and release the clones that left."""
+        self._pending.clear()
+        for key in self._leaving:
+            self.state.release_anchor(key)
+        self._leaving.clear()
+
+    def flush(self, bounded: Sequence[str]) -> None:
+        """Apply the pending rows alone (a frame without a landmark update, the run's end)."""
+        rows = self.pending_rows()
+        if rows is not None:
+            self.state.update(
+                self.filter, self.gamma, rows.r, np.zeros(len(rows.r)), rows.H, rows.cols,
+                rows.R, vehicles=bounded,
+            )  # fmt: skip
+        self.settle()

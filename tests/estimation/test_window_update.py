@@ -4,9 +4,13 @@ clones in the joint state, and the track book's bookkeeping (`window_update.py`,
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy.stats import chi2
 
+from cvslam_cli.estimation.association import LandmarkPrediction
+from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy
 from cvslam_cli.estimation.landmark_coordinates import coordinates
 from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import InsModel
@@ -14,7 +18,8 @@ from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.settings import WindowSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.tracks import TrackBook, TrackObservations
-from cvslam_cli.estimation.window_update import fit_points, track_residuals
+from cvslam_cli.estimation.update import ExtraRows, VisualUpdater
+from cvslam_cli.estimation.window_update import SlidingWindow, fit_points, track_residuals
 
 K = np.array([[450.0, 0.0, 320.0], [0.0, 450.0, 240.0], [0.0, 0.0, 1.0]])
 R_CB = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # downward camera
@@ -177,3 +182,80 @@ def test_track_book_keeps_each_tracks_observations_in_order() -> None:
     assert taken.track.tolist() == [0, 0, 1, 1] and taken.clone.tolist() == [10, 11, 10, 11]
     np.testing.assert_array_equal(taken.z, np.stack([z0[1], z1[0], z0[3], z1[1]]))
     np.testing.assert_array_equal(taken.m, np.ones((2, 3)))
+
+
+def _ended_tracks(poses: np.ndarray, rng: np.random.Generator) -> TrackObservations:
+    f = _ground_points(12, rng)
+    track, clone, z = _observe(poses, f, rng, SIGMA_PX)
+    return TrackObservations(track, clone, z, f + rng.normal(0, 0.3, f.shape))
+
+
+class _Vehicle:  # what the window's residuals need of a VehicleInput
+    obs = OBS
+
+
+def test_pending_rows_wait_for_their_clones_columns_and_release_leaving_clones_after() -> None:
+    """The rows of ended tracks, applied later (`pending_rows` / `flush`), are the update
+    applied at once, on the clones' columns as they are when applied (here after an earlier
+    anchor left and moved them); a clone leaving the window stays until they are applied."""
+    rng = np.random.default_rng(7)
+    poses = _poses(4, rng)
+    st, keys = _state_with_clones(poses, rng)
+    keys_c = keys[1:]
+    t = _ended_tracks(poses[1:], rng)
+    t = TrackObservations(t.track, np.asarray(keys_c)[t.clone], t.z, t.m)
+    ekf = FilterSettings("ekf")
+    window = SlidingWindow(st, SETTINGS, ekf, GammaPolicy(ekf), np.eye(4) * SIGMA_PX**2)
+    window._residuals(_Vehicle(), t)
+    window._leaving.append(keys_c[0])
+    st.release_anchor(keys[0])  # the columns of the other clones move by 6
+    # the same rows applied at once, on a copy of the state as it is now
+    ref = copy.deepcopy(st)
+    tr = track_residuals(OBS, ref, t, np.eye(4) * SIGMA_PX**2, SETTINGS)
+    cols = np.concatenate([ref.anchor_rows(int(k)) for k in tr.clone_keys])
+    ref.update(ekf, GammaPolicy(ekf), tr.r, np.zeros(len(tr.r)), tr.H, cols,
+               SIGMA_PX**2 * np.eye(len(tr.r)))  # fmt: skip
+    assert st.anchor_rows(keys_c[0]) is not None  # waits for the rows that use it
+    rows = window.pending_rows()
+    assert rows is not None and len(rows.r) == len(tr.r) and tr.used == 12
+    window.flush(())
+    assert window.pending_rows() is None and st.anchor_rows(keys_c[0]) is None
+    ref.release_anchor(keys_c[0])
+    np.testing.assert_allclose(st.x, ref.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-15)
+    assert not np.allclose(st.x[9:], poses[2:].ravel())  # the update did move the clones
+
+
+def test_rows_stacked_into_a_landmark_update_equal_two_ekf_updates() -> None:
+    """`VisualUpdater.update` with extra linear rows (the window's) is, for the EKF, the
+    landmark update followed by an update with those rows (their innovation moved by the
+    first update's correction): one pass over P instead of two."""
+    rng = np.random.default_rng(8)
+    poses = _poses(3, rng)
+    st, keys = _state_with_clones(poses, rng)
+    k = 3
+    slots = st.add_landmarks(_ground_points(k, rng), np.eye(3 * k) * 0.04, np.zeros((3 * k, st.n)))
+    A = rng.normal(size=(st.n, st.n))
+    st.P[...] = A @ A.T / st.n * 1e-3 + np.eye(st.n) * 1e-4
+    d = st.landmark_columns(slots).shape[1]
+    pred = LandmarkPrediction(
+        slots, rng.normal(300, 50, (k, 4)), rng.normal(0, 30, (k, 4, 9)),
+        rng.normal(0, 30, (k, 4, d)), np.zeros((k, 4, 4)),
+    )  # fmt: skip
+    z = pred.z + rng.normal(0, SIGMA_PX, (k, 4))
+    cols = np.concatenate([st.anchor_rows(int(key)) for key in keys[:2]])
+    extra = ExtraRows(
+        rng.normal(0, 0.5, 7), rng.normal(0, 30, (7, 12)), cols, SIGMA_PX**2 * np.eye(7)
+    )
+    ekf = FilterSettings("ekf")
+    v_idx = np.arange(9)
+    one = copy.deepcopy(st)
+    VisualUpdater(one, ekf, SIGMA_PX).update(v_idx, pred, np.arange(k), z, (), extra)
+    two = copy.deepcopy(st)
+    up = VisualUpdater(two, ekf, SIGMA_PX)
+    up.update(v_idx, pred, np.arange(k), z, ())
+    r = extra.r - extra.H @ (two.x[cols] - st.x[cols])
+    two.update(ekf, up.gamma, r, np.zeros(7), extra.H, extra.cols, extra.R)
+    np.testing.assert_allclose(one.x, two.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(one.P, two.P, rtol=0, atol=1e-12)
+    assert not np.allclose(one.x, st.x)
