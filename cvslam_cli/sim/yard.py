@@ -218,8 +218,9 @@ class Yard:
 
     walls: the four perimeter walls (south, east, north, west) then the obstacle faces.
     ground_texture: (Hg, Wg) uint8, row <-> north, col <-> east from
-    `spec.ground_origin_nav_m`, at `spec.ground_px_per_m`. obstacles_ne: per obstacle its footprint, (2, 2) endpoints of a
-    panel or (4, 2) corners of a box (north, east, metres, in order around the box).
+    `spec.ground_origin_nav_m`, at `spec.ground_px_per_m`. obstacles_ne: per obstacle its
+    footprint, (2, 2) endpoints of a panel or (4, 2) corners of a box (north, east, metres,
+    in order around the box).
     """
 
     spec: YardSpec
