@@ -104,6 +104,16 @@ def test_uav_over_the_yard_flies_over_obstacles_not_below_the_walls(tmp_path):
     summary = run(sc, tmp_path / "ok")  # over the east wall: no obstacle to a UAV
     assert summary.vehicles["uav1"].imu_samples > 0 and summary.vehicles["uav1"].observations
     assert summary.vehicles["robot1"].odometry_samples > 0
+    # world.npz: the textured ground (yard and margin), as the mosaic's truth reads it; ground
+    # landmarks on all of it, walls where the yard's are
+    with np.load(tmp_path / "ok" / "truth" / "world.npz") as world:
+        np.testing.assert_allclose(world["origin_nav_m"], [-16.0, -16.0])
+        np.testing.assert_allclose(world["size_m"], [32.0, 32.0])
+        assert world["ground_texture"].shape == (32 * 8, 32 * 8)
+        assert np.abs(world["wall_segments_ne"][:4]).max() == 10.0
+    lm = np.loadtxt(tmp_path / "ok" / "truth" / "landmarks.csv", delimiter=",", skiprows=1)
+    ground = lm[lm[:, 3] == 0.0, 1:3]
+    assert np.abs(ground).max() > 14.0 and np.abs(ground).max() <= 16.0
     low = [[-6, -6, -(2.5 + MIN_CLEARANCE_M - 1.0)], [6, 6, -(2.5 + MIN_CLEARANCE_M - 1.0)]]
     out = [[-6, 18, -8], [-6, 30, -8]]  # beyond the 6 m of ground outside the east wall
     for waypoints, message in (
