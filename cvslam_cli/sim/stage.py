@@ -8,7 +8,8 @@ Output directory (written as `<out>.partial` and renamed when complete):
 <out>/truth/<vehicle>.tum      true body pose in the nav frame (NED), TUM format
 <out>/truth/<vehicle>_imu.npz  true IMU biases over time (UAV)
 <out>/truth/world.npz          terrain: elevation grid, orthophoto, urban weight, geometry;
-                               yard: ground texture and the walls
+                               yard: ground texture (origin_nav_m, size_m: the textured
+                               ground, the yard and its ground_margin_m) and the walls
 <out>/truth/<vehicle>_depth.npz per-pixel depth of every left image (outputs.depth)
 <out>/truth/landmarks.csv      landmark mode: id, x, y, z (nav frame)
 <out>/features/<vehicle>.npz   landmark mode: observations in the extract feature format
@@ -63,6 +64,7 @@ GRAVITY_NAV = np.array([0.0, 0.0, 9.80665])
 _WORLD, _IMU, _ODOM, _FRAME, _LANDMARKS = 0, 1, 2, 3, 4
 
 World = Terrain | Yard
+MIN_CLEARANCE_M = 5.0  # least height of a UAV above the ground (terrain) or the walls (yard)
 
 
 def stamp_ns(t_s: np.ndarray | float) -> np.ndarray:
@@ -132,6 +134,30 @@ def _coarse(cam: CameraModel, factor: int = 8) -> CameraModel:
     )
 
 
+def _check_uav_over_yard(yard: Yard, key: str, t_s: np.ndarray, p_nav_m: np.ndarray) -> None:
+    """A UAV over the yard stays over its textured ground (the yard and its ground margin;
+    beyond, the ground has no texture of its own, nor landmarks) and at least
+    `MIN_CLEARANCE_M` above its tallest wall (walls and obstacles are no obstacles to it)."""
+    (n0, e0), (sn, se) = yard.spec.ground_origin_nav_m, yard.spec.ground_size_m
+    n, e = p_nav_m[:, 0], p_nav_m[:, 1]
+    inside = (n >= n0) & (n <= n0 + sn) & (e >= e0) & (e <= e0 + se)
+    if not inside.all():
+        i = int(np.argmin(inside))
+        raise ConfigError(
+            f"{key}.waypoints_nav_m: the path leaves the yard's ground at t = {t_s[i]:.1f} s "
+            f"(north {n[i]:.1f} m, east {e[i]:.1f} m)"
+        )
+    top_m = max(w.height_m for w in yard.walls)
+    clearance = -p_nav_m[:, 2] - top_m
+    if clearance.min() < MIN_CLEARANCE_M:
+        i = int(np.argmin(clearance))
+        raise ConfigError(
+            f"{key}.waypoints_nav_m: the vehicle is {clearance[i]:.1f} m above the "
+            f"yard's tallest wall ({top_m:g} m) at t = {t_s[i]:.1f} s (at least "
+            f"{MIN_CLEARANCE_M:g} m needed)"
+        )
+
+
 def check_vehicle(world: World, v: _Vehicle, duration_s: float, source: str) -> None:
     """One-line errors for a path that leaves the world or a camera that does not see it."""
     key = f"{source}: vehicles.{v.names.vehicle}"
@@ -147,12 +173,14 @@ def check_vehicle(world: World, v: _Vehicle, duration_s: float, source: str) -> 
                 f"{t[i]:.1f} s (north {n[i]:.0f} m, east {e[i]:.0f} m)"
             )
         agl = -m.p_nav_m[:, 2] - world.elevation_at(n, e)
-        if agl.min() < 5.0:
+        if agl.min() < MIN_CLEARANCE_M:
             i = int(np.argmin(agl))
             raise ConfigError(
                 f"{key}.waypoints_nav_m: the vehicle is {agl[i]:.1f} m above the "
-                f"ground at t = {t[i]:.1f} s (at least 5 m needed)"
+                f"ground at t = {t[i]:.1f} s (at least {MIN_CLEARANCE_M:g} m needed)"
             )
+    elif v.spec.kind == "uav":  # over the yard: inside its footprint, above its walls
+        _check_uav_over_yard(world, key, t, m.p_nav_m)
     else:
         ok = np.array([world.free_space_ok(a, b, 0.3) for a, b in zip(n, e, strict=True)])
         if not ok.all():
@@ -457,7 +485,7 @@ def _landmark_world(sc: Scenario, world: World) -> LandmarkWorld:
         count = int(rng.poisson(dens * sn * se))
         n, e = rng.uniform(n0, n0 + sn, count), rng.uniform(e0, e0 + se, count)
         return make_world(world.surface_nav(n, e), rng)
-    (n0, e0), (sn, se) = world.spec.origin_nav_m, world.spec.size_m
+    (n0, e0), (sn, se) = world.spec.ground_origin_nav_m, world.spec.ground_size_m
     pts = []
     count = int(rng.poisson(dens * sn * se))
     pts.append(
@@ -499,8 +527,8 @@ def _write_world(out: SimLayout, world: World) -> None:
             {
                 "kind": np.array("yard"),
                 "ground_texture": world.ground_texture,
-                "origin_nav_m": np.asarray(world.spec.origin_nav_m, float),
-                "size_m": np.asarray(world.spec.size_m, float),
+                "origin_nav_m": np.asarray(world.spec.ground_origin_nav_m, float),
+                "size_m": np.asarray(world.spec.ground_size_m, float),
                 "ground_px_per_m": np.array(world.spec.ground_px_per_m),
                 "wall_segments_ne": np.array([[w.p0_ne, w.p1_ne] for w in world.walls], float),
                 "wall_heights_m": np.array([w.height_m for w in world.walls], float),

@@ -5,7 +5,8 @@ of textured vertical surfaces and ground. The simulated yard is:
 
 - the ground, the plane z = 0 of the nav frame (NED: x north, y east, z down), textured like
   concrete/asphalt (fractal noise, slabs, painted lines, stains, cracks) over the rectangle
-  `origin_nav_m` + [0, size_m];
+  `origin_nav_m` + [0, size_m], widened by `ground_margin_m` on every side (the paved ground
+  beyond the walls, which a camera above them sees: a UAV's);
 - four perimeter walls along that rectangle and `n_obstacles` free-standing obstacles
   inside it (thin two-sided panels and boxes of four faces), all vertical rectangles standing
   on the ground, from z = -height to z = 0. Each wall texture is a sequence of segments,
@@ -14,7 +15,8 @@ of textured vertical surfaces and ground. The simulated yard is:
 
 Texture conventions (texel centres at half-integers of metres * px_per_m, so that a
 continuous texture coordinate is `metres * px_per_m - 0.5` in OpenCV's pixel convention):
-- ground texture (Hg, Wg): row <-> north, col <-> east, from `origin_nav_m`;
+- ground texture (Hg, Wg): row <-> north, col <-> east, from `YardSpec.ground_origin_nav_m`
+  (`origin_nav_m` less the margin);
 - wall texture (Ht, Wt): col <-> distance s along the wall from `p0_ne` towards `p1_ne`,
   row <-> distance *below the top of the wall* (row 0 at z = -height_m, the last row at the
   ground). Outside a texture the edge texel is repeated (clamp).
@@ -66,7 +68,9 @@ class YardSpec:
     ground_px_per_m: texel density of wall and ground textures. obstacle_clearance_m: the
     smallest gap left between obstacles, and between an obstacle and the perimeter walls.
     busy_fraction: share of wall segments with busy content (bricks, posters, shelves, signs,
-    doors and windows); the rest are plain painted concrete.
+    doors and windows); the rest are plain painted concrete. ground_margin_m: how far the
+    textured ground extends beyond the perimeter walls on every side; 0 (ground robots only:
+    their walls hide what lies beyond) ends it at the walls, where the edge texels repeat.
     """
 
     size_m: tuple[float, float] = opt((40.0, 40.0))
@@ -77,6 +81,19 @@ class YardSpec:
     ground_px_per_m: float = opt(40.0, lo=0.0, lo_open=True)
     obstacle_clearance_m: float = opt(2.5, lo=0.0)
     busy_fraction: float = opt(0.6, lo=0.0, hi=1.0)
+    ground_margin_m: float = opt(0.0, lo=0.0)
+
+    @property
+    def ground_origin_nav_m(self) -> tuple[float, float]:
+        """(north, east) of the south-west corner of the textured ground."""
+        m = float(self.ground_margin_m)
+        return (float(self.origin_nav_m[0]) - m, float(self.origin_nav_m[1]) - m)
+
+    @property
+    def ground_size_m(self) -> tuple[float, float]:
+        """(north, east) extent of the textured ground: the yard and its margins."""
+        m = 2.0 * float(self.ground_margin_m)
+        return (float(self.size_m[0]) + m, float(self.size_m[1]) + m)
 
     def check(self) -> None:
         """Raise `ValueError` saying what is wrong if no yard can be built from this spec."""
@@ -102,6 +119,8 @@ class YardSpec:
             )
         if not 0.0 <= self.busy_fraction <= 1.0:
             raise ValueError(f"yard: busy_fraction must be in [0, 1], got {self.busy_fraction:g}")
+        if not (math.isfinite(self.ground_margin_m) and self.ground_margin_m >= 0):
+            raise ValueError(f"yard: ground_margin_m must be >= 0, got {self.ground_margin_m:g}")
         wall_px = max(sn, se) * self.texture_px_per_m
         if wall_px > MAX_TEXTURE_PX or self.wall_height_m * self.texture_px_per_m > MAX_TEXTURE_PX:
             raise ValueError(
@@ -109,13 +128,14 @@ class YardSpec:
                 f"texture_px_per_m={self.texture_px_per_m:g} needs a texture over "
                 f"{MAX_TEXTURE_PX} px; reduce size_m or texture_px_per_m"
             )
-        gn, ge = sn * self.ground_px_per_m, se * self.ground_px_per_m
+        gsn, gse = self.ground_size_m
+        gn, ge = gsn * self.ground_px_per_m, gse * self.ground_px_per_m
         if max(gn, ge) > MAX_TEXTURE_PX or gn * ge > MAX_GROUND_TEXELS:
             raise ValueError(
-                f"yard: the {sn:g} m x {se:g} m ground at ground_px_per_m="
+                f"yard: the {gsn:g} m x {gse:g} m ground at ground_px_per_m="
                 f"{self.ground_px_per_m:g} needs a {gn:.0f} x {ge:.0f} texture (at most "
-                f"{MAX_TEXTURE_PX} px a side and {MAX_GROUND_TEXELS} texels); reduce size_m "
-                f"or ground_px_per_m"
+                f"{MAX_TEXTURE_PX} px a side and {MAX_GROUND_TEXELS} texels); reduce size_m, "
+                f"ground_margin_m or ground_px_per_m"
             )
         min_side = 2.0 * self.obstacle_clearance_m + 1.0
         if self.n_obstacles > 0 and min(sn, se) < min_side:
@@ -197,9 +217,10 @@ class Yard:
     """A generated yard.
 
     walls: the four perimeter walls (south, east, north, west) then the obstacle faces.
-    ground_texture: (Hg, Wg) uint8, row <-> north, col <-> east from `spec.origin_nav_m`, at
-    `spec.ground_px_per_m`. obstacles_ne: per obstacle its footprint, (2, 2) endpoints of a
-    panel or (4, 2) corners of a box (north, east, metres, in order around the box).
+    ground_texture: (Hg, Wg) uint8, row <-> north, col <-> east from
+    `spec.ground_origin_nav_m`, at `spec.ground_px_per_m`. obstacles_ne: per obstacle its
+    footprint, (2, 2) endpoints of a panel or (4, 2) corners of a box (north, east, metres,
+    in order around the box).
     """
 
     spec: YardSpec
@@ -208,9 +229,9 @@ class Yard:
     obstacles_ne: tuple[F64, ...] = ()
 
     def ground_texture_at(self, n_m: F64, e_m: F64) -> F32:
-        """Ground radiance in [0, 1] (bilinear, clamped at the yard's edge) at nav (n, e)."""
+        """Ground radiance in [0, 1] (bilinear, clamped at the ground's edge) at nav (n, e)."""
         ppm = self.spec.ground_px_per_m
-        n0, e0 = self.spec.origin_nav_m
+        n0, e0 = self.spec.ground_origin_nav_m
         row = (np.asarray(n_m, dtype=float) - n0) * ppm - 0.5
         col = (np.asarray(e_m, dtype=float) - e0) * ppm - 0.5
         return _bilinear_clamped(self.ground_texture, row, col)
@@ -595,8 +616,9 @@ def make_yard(spec: YardSpec, rng: np.random.Generator) -> Yard:
             tex = _wall_texture(length, height, ppm, spec.busy_fraction, rng)
             walls.append(Wall(poly[a].copy(), poly[b].copy(), height, tex, ppm, kind))
     gppm = float(spec.ground_px_per_m)
+    gsn, gse = spec.ground_size_m
     ground = _ground_texture(
-        (max(2, math.ceil(sn * gppm)), max(2, math.ceil(se * gppm))), rng, gppm
+        (max(2, math.ceil(gsn * gppm)), max(2, math.ceil(gse * gppm))), rng, gppm
     )
     return Yard(
         spec=spec, walls=tuple(walls), ground_texture=ground, obstacles_ne=tuple(footprints)
@@ -719,7 +741,7 @@ def render_yard_view(
     t0 = np.where(ground, t_g, np.float32(0.0))
     gppm = float(spec.ground_px_per_m)
     gh, gw = yard.ground_texture.shape
-    n0, e0 = (float(v) for v in spec.origin_nav_m)
+    n0, e0 = spec.ground_origin_nav_m
     map_y = np.clip((float(o[0]) - n0 + t0 * dn) * gppm - 0.5, -0.5, gh - 0.5)
     map_x = np.clip((float(o[1]) - e0 + t0 * de) * gppm - 0.5, -0.5, gw - 0.5)
     map_y += np.float32(atlas.ground_rc[0])

@@ -22,7 +22,7 @@ def test_the_shipped_recipes_cover_the_data_at_hand():
     names = {p.stem for p in SHIPPED}
     assert names == {
         "kitti_clip_a", "kitti_clip_b", "euroc_v101_micro", "uav2_paper_seed1",
-        "uav2_paper_seed2", "uav2_paper_seed3", "ugv2_yard", "uav4_team",
+        "uav2_paper_seed2", "uav2_paper_seed3", "ugv2_yard", "uav4_team", "mixed_yard",
     }  # fmt: skip
 
 
