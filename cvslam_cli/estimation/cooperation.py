@@ -3,8 +3,10 @@
 - Joint initialisation (paper: a new landmark seen by several vehicles at once is
   initialised from all of them): new landmarks of one vehicle that another saw at about the
   same time (among the unmatched points of its last frame, within `joint_init_window_ns`)
-  are updated with that observation right away. The other vehicle's state is still at that
-  frame (a vehicle's state moves only at its own frames), so the update is exact.
+  are updated with that observation right away, after the same test of one consistent
+  correction of the observing vehicle's pose as its own frames' associations
+  (`association.pose_consistent`). The other vehicle's state is still at that frame (a
+  vehicle's state moves only at its own frames), so the update is exact.
 - Localisation of a vehicle whose initial pose is unknown (extension beyond the paper):
   each of its frames is matched to the landmarks in the state (`localise.py`, PnP); once
   found, and inside the vehicle's prior (chi-square gate on position), the vehicle is
@@ -25,6 +27,7 @@ from cvslam_cli.estimation.association import (
     associate,
     classify,
     in_view_rows,
+    pose_consistent,
     record_observations,
     unassociated,
 )
@@ -83,22 +86,27 @@ class Cooperation:
         front = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots))
         if not len(front):
             return
-        pred, _ = self.updater.predict(vin, pose, slots[front])
+        pred, P_mm = self.updater.predict(vin, pose, slots[front])
         ids = self.book.slot_ids[slots[front]]
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2, s.descriptor_ratio,
             s.max_descriptor_distance,
         )  # fmt: skip
-        k = len(assoc.pred_index)
+        if not len(assoc.pred_index):
+            return
+        ok = pose_consistent(
+            pred, assoc.pred_index, cand.z[assoc.match_index], pose.P_vv,
+            P_mm[assoc.pred_index], self.updater.R_pixel_hat, s.consistency_chi2,
+        )  # fmt: skip
+        a, rows = assoc.pred_index[ok], assoc.match_index[ok]
+        k = len(a)
         if not k:
             return
-        a = assoc.pred_index
-        self.updater.update(pose.index, pred, a, cand.z[assoc.match_index], self.bounded_vehicles())
+        self.updater.update(pose.index, pred, a, cand.z[rows], self.bounded_vehicles())
         record_observations(
-            self.state, self.book, other, slots[front][a], cand.stamp_ns,
-            cand.z[assoc.match_index],
+            self.state, self.book, other, slots[front][a], cand.stamp_ns, cand.z[rows]
         )  # fmt: skip
-        other.candidates = cand.without(assoc.match_index)
+        other.candidates = cand.without(rows)
         self.events.add(t_ns, "joint_initialisation", run.vin.name, vin.name, k)
 
     def localise_vehicle(self, run: VehicleRun, frame: FrameMatches) -> FrameOutcome:
