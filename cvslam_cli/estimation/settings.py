@@ -58,6 +58,7 @@ class SlamSettings:
     localise_min_inliers: int = 12
     localise_reprojection_px: float = 2.0
     localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
+    localise_confirm_frames: int = 3  # in a prior map: frames that must agree (prior_map.py)
     window: WindowSettings = field(default_factory=WindowSettings)
 
 
