@@ -12,12 +12,20 @@ sees them:
   landmarks (`PriorLandmarks`, the re-activation step of `reactivation.py`: in view, inside
   the chi-square window of the vehicle's pose and the landmark's inflated marginal, ratio
   test, one consistent vehicle correction, at least `reactivation_min_landmarks`), and they
-  are inserted the same conservative way: the archived marginal inflated by
-  `reactivation_inflation`, no cross-covariance. What the archive lost is larger here than
-  for an eviction within a run: every prior landmark was correlated with the earlier
-  session's trajectory and with the others (a common error of that session), and the
-  inflation is the margin for it; the NEES of the check in BENCHMARKS.md ("Fuse:
-  multi-session") says whether it is enough;
+  are inserted conservatively. What the archive lost is more than for an eviction within a
+  run: every prior landmark was correlated with the earlier session's trajectory, and so
+  with the others: they share that session's error where they were mapped (a drift of the
+  map's frame), which no inflation of independent marginals represents (n landmarks seen
+  together would average it away as if independent; BENCHMARKS.md "Fuse: multi-session"
+  measured the NEES of that). So the map's common error is a state of its own, the offset
+  b (3 numbers, nav frame, m: prior position = true position + b + own error), started at
+  0 with covariance B (`PriorMap.offset_covariance`: the largest common part the archived
+  marginals allow, the per-axis minimum of their variances, inflated like them), added to
+  the joint state as a static block (`OFFSET_BLOCK`, no motion, never bounded). A prior
+  landmark enters as l = m_prior - b with its own error the archived marginal inflated by
+  `prior_map_inflation` (`PriorLandmarks.reinsert`): correlated with b, and through b
+  with every vehicle and landmark the map has touched, as the model says; the vehicles'
+  updates with prior landmarks then estimate b (`run.yaml`: the offset found);
 - a vehicle whose pose is unknown (`fuse.initial.unknown`) is localised in the prior map
   (`PriorLocalisation`): descriptor pairs with the state's landmarks and the prior's not in
   the state, PnP inside RANSAC (`localise.py`), the position inside the vehicle's prior
@@ -37,14 +45,17 @@ sessions kept, the new landmarks one more than the prior's largest.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from cvslam_cli.estimation.association import TYPE_2, classify, record_observations, unassociated
 from cvslam_cli.estimation.events import EventLog
 from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
+from cvslam_cli.estimation.landmark_coordinates import AnchoredInverseDepth
 from cvslam_cli.estimation.localise import Localisation, localise
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
@@ -56,6 +67,10 @@ from cvslam_cli.estimation.vehicle import VehiclePose, VehicleRun
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.landmark_archive import LandmarkArchive
 
+OFFSET_BLOCK = "prior map offset"
+"""The joint state's block of the prior map's offset b (not a vehicle name: those are file
+names, without spaces)."""
+
 CONFIRM_RANGE_FRACTION = 0.05
 """Two localisations of consecutive frames agree when the offsets of their poses from the
 vehicle's dead-reckoned prior differ by less than this fraction of the median range from
@@ -64,14 +79,36 @@ CONFIRM_YAW_RAD = float(np.radians(3.0))
 """... and their heading offsets by less than this (rad)."""
 
 
+@dataclass(frozen=True)
+class _Static:
+    """The 'motion model' of the offset block: n states that never move (`JointState` needs
+    only n; the block is never predicted)."""
+
+    n: int = 3
+    kind: str = "static"
+
+
 class PriorMap:
     """The prior map of a run: `archive` (N landmarks), which become the book's ids 0..N-1
-    (`seed`); `session` the number of this run's landmarks."""
+    (`seed`); `session` the number of this run's landmarks; `inflation` of the landmarks'
+    marginals (`prior_map_inflation`)."""
 
-    def __init__(self, archive: LandmarkArchive) -> None:
+    def __init__(self, archive: LandmarkArchive, inflation: float) -> None:
         self.archive = archive
         self.n = len(archive)
         self.session = int(archive.session.max()) + 1 if self.n else 1
+        self.inflation = inflation
+
+    def offset_covariance(self) -> F64:
+        """B (3, 3): the per-axis minimum of the archived landmarks' variances (the common
+        part of every landmark's error is no larger than any one's) times the inflation."""
+        var = np.diagonal(self.archive.cov_nav_m2, axis1=1, axis2=2)
+        var = var[np.all(np.isfinite(var), axis=1)]
+        return self.inflation * np.diag(var.min(axis=0)) if len(var) else np.eye(3)
+
+    def offset_block(self) -> tuple[str, Any, F64, F64]:
+        """The offset b's block for `JointState` (module docstring): x0 = 0, P0 = B."""
+        return OFFSET_BLOCK, _Static(), np.zeros(3), self.offset_covariance()
 
     def seed(self, book: LandmarkBook) -> None:
         """Enter the prior landmarks in the (empty) book, out of the state and observed by
@@ -133,7 +170,9 @@ class PriorLandmarks(Reactivation):
         R_pixel_hat: F64,
         prior: PriorMap,
     ) -> None:
-        super().__init__(state, book, settings, R_pixel_hat)
+        k = settings.prior_map_inflation
+        inflated = dataclasses.replace(settings, reactivation_inflation=k)
+        super().__init__(state, book, inflated, R_pixel_hat)
         self.prior = prior
 
     @property
@@ -151,10 +190,52 @@ class PriorLandmarks(Reactivation):
             known = np.isfinite(trace) & (trace <= 3 * MAX_REACTIVATION_STD_M**2)
         return np.flatnonzero(out & unseen & known)
 
+    def reinsert(self, run: VehicleRun, ids: I64) -> I64:
+        """Put the prior landmarks `ids` into the state as l = m_prior - b, their own error
+        the inflated archived marginal E (module docstring); returns their slots."""
+        st, book = self.state, self.book
+        b_rows = st.vehicles[OFFSET_BLOCK].index
+        l_nav = book.p_nav_m[ids] - st.x[b_rows]
+        E = self.settings.reactivation_inflation * book.cov_nav_m2[ids]
+        if st.coords.anchored:
+            slots = _anchored_on_offset(st, run, l_nav, E, b_rows)
+        else:
+            k = len(ids)
+            P_ll = np.tile(st.P[np.ix_(b_rows, b_rows)], (k, k))
+            for j in range(k):
+                P_ll[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += E[j]
+            slots = st.add_landmarks(l_nav, P_ll, -np.tile(st.P[b_rows, :], (k, 1)))
+        book.readmit(ids)
+        return slots
+
     def find(self, run: VehicleRun, frame: FrameMatches, free: np.ndarray) -> Found:
         found = super().find(run, frame, free)
         # no absence to speak of: the landmarks come from another session
         return Found(found.ids, found.match_rows, np.zeros(len(found.ids), dtype=np.int64))
+
+
+def _anchored_on_offset(st: JointState, run: VehicleRun, l_nav_m: F64, E: F64, b_rows: I64) -> I64:
+    """Landmarks l = m - b (k, 3) with own errors E (k, 3, 3), written relative to a new
+    clone a of run's vehicle pose: theta = f(l, a), so with G = [-T_m 1, T_a] on (b, a),
+    P_tt = G P_(b,a) G^T + T_m E T_m^T and P_tx = G P_(b,a),x (as `reactivation._anchored`,
+    with l correlated with the state through b)."""
+    vin = run.vin
+    pose = VehiclePose.of(st, vin)
+    P_ax = pose.J @ st.P[pose.index, :]
+    key, a_rows = st.add_anchor(
+        np.concatenate([pose.p_nav_m, pose.euler_rad]), P_ax[:, pose.index] @ pose.J.T, P_ax
+    )
+    R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
+    theta, T_m, T_a = AnchoredInverseDepth().from_nav(l_nav_m, st.x[a_rows], R_cb, t_bc)
+    k = len(l_nav_m)
+    G = np.concatenate([-T_m.reshape(3 * k, 3), T_a.reshape(3 * k, 6)], axis=1)
+    rows = np.concatenate([b_rows, a_rows])
+    P_tx = G @ st.P[rows, :]
+    P_tt = P_tx[:, rows] @ G.T
+    own = T_m @ E @ np.swapaxes(T_m, 1, 2)
+    for j in range(k):
+        P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += own[j]
+    return st.add_landmarks(theta, 0.5 * (P_tt + P_tt.T), P_tx, key, R_cb, t_bc)
 
 
 @dataclass(frozen=True)

@@ -67,7 +67,12 @@ from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
-from cvslam_cli.estimation.prior_map import PriorLandmarks, PriorLocalisation, PriorMap
+from cvslam_cli.estimation.prior_map import (
+    OFFSET_BLOCK,
+    PriorLandmarks,
+    PriorLocalisation,
+    PriorMap,
+)
 from cvslam_cli.estimation.reactivation import Reactivation
 from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
@@ -103,6 +108,9 @@ class SlamResult:
     gamma_raised: int
     # every landmark observation used, ids as in `landmarks` (fuse/observations.npz, refine)
     observations: ObservationTable | None = None
+    # with a prior map: its common offset b (3,) as estimated at the end, and its covariance
+    prior_offset_m: F64 | None = None
+    prior_offset_cov_m2: F64 | None = None
 
     @property
     def landmarks(self) -> LandmarkMap:
@@ -135,8 +143,11 @@ class Slam:
         self.settings = settings
         self.vehicles = vehicles
         self.names = [v.name for v in vehicles]
+        # a map from an earlier run (prior_map.py): its common offset is a block of the state
+        self.prior = None if prior is None else PriorMap(prior, settings.prior_map_inflation)
         self.state = JointState(
-            [(v.name, v.model, v.x0, v.P0) for v in vehicles],
+            [(v.name, v.model, v.x0, v.P0) for v in vehicles]
+            + ([self.prior.offset_block()] if self.prior is not None else []),
             coordinates(
                 resolve(settings.landmark_coordinates, [v.model.kind for v in vehicles])[0]
             ),
@@ -161,11 +172,9 @@ class Slam:
             else None
         )  # fmt: skip
         self.reactivation = Reactivation(self.state, self.book, settings, self.updater.R_pixel_hat)
-        self.prior: PriorMap | None = None
         self.prior_landmarks: PriorLandmarks | None = None
         self.prior_localisation: PriorLocalisation | None = None
-        if prior is not None:  # a map from an earlier run (prior_map.py)
-            self.prior = PriorMap(prior)
+        if self.prior is not None:
             self.prior.seed(self.book)
             self.prior_landmarks = PriorLandmarks(
                 self.state, self.book, settings, self.updater.R_pixel_hat, self.prior
@@ -467,9 +476,13 @@ class Slam:
         if self.prior is not None:
             archive = self.prior.merged_archive(archive)
         tracks = {r.vin.name: _track(r.vin, r.stamps_ns, r.x, r.pose_cov) for r in self.runs}
+        b, B = None, None
+        if self.prior is not None:
+            rows = st.vehicles[OFFSET_BLOCK].index
+            b, B = st.x[rows].copy(), st.P[np.ix_(rows, rows)].copy()
         return SlamResult(
             tracks, self.timeline, self.events.rows, archive, self.divergence,
-            self.updater.gamma.raised_count, _observations(self.runs),
+            self.updater.gamma.raised_count, _observations(self.runs), b, B,
         )  # fmt: skip
 
 

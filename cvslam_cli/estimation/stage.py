@@ -466,6 +466,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         joint_init_window_ns=int(m.joint_init_window_s * 1e9),
         reactivation=m.reactivation,
         reactivation_inflation=m.reactivation_inflation,
+        prior_map_inflation=m.prior_map_inflation,
         reactivation_min_absence_ns=int(m.reactivation_min_absence_s * 1e9),
         reactivation_min_landmarks=m.reactivation_min_landmarks,
         max_reactivated_per_frame=m.max_reactivated_per_frame,
@@ -794,6 +795,7 @@ def _prior_summary(
     a = res.archive
     n = len(prior)
     used = int(np.sum(a.n_observations[:n] > prior.n_observations)) if n else 0
+    session = int(prior.session.max()) + 1 if n else 1
     try:
         shown = str(path.resolve().relative_to(run_dir.resolve()))
     except ValueError:
@@ -803,14 +805,31 @@ def _prior_summary(
         used,
         n,
         len(a) - n,
-        int(a.session.max()) if len(a) else 0,
+        session,
     )
     return {
         "file": shown,
         "landmarks": n,
         "observed_again": used,
         "new_landmarks": len(a) - n,
-        "session": int(prior.session.max()) + 1 if n else 1,
+        "session": session,
+        **_offset(res),
+    }
+
+
+def _offset(res: SlamResult) -> dict[str, Any]:
+    """The prior map's common offset the run estimated (`prior_map.py`), for run.yaml."""
+    if res.prior_offset_m is None or res.prior_offset_cov_m2 is None:
+        return {}
+    sigma = np.sqrt(np.maximum(np.diag(res.prior_offset_cov_m2), 0.0))
+    log.info(
+        "fuse: prior map offset (%s) m, sigma (%s) m",
+        ", ".join(f"{x:.3f}" for x in res.prior_offset_m),
+        ", ".join(f"{x:.3f}" for x in sigma),
+    )
+    return {
+        "offset_m": [round(float(x), 4) for x in res.prior_offset_m],
+        "offset_sigma_m": [round(float(x), 4) for x in sigma],
     }
 
 

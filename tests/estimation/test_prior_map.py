@@ -18,11 +18,11 @@ from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.prior_map import PriorMap
 from cvslam_cli.geometry.rotations import interpolate_positions
-from cvslam_cli.io.fuse_files import read_map_csv
+from cvslam_cli.io.fuse_files import read_map_csv, write_map_csv
 from cvslam_cli.io.map_file import load_map, load_prior_map, save_map
 from cvslam_cli.io.npz import save_npz
 from cvslam_cli.io.trajectory import read_tum
-from cvslam_cli.records.landmark_archive import NEVER_NS
+from cvslam_cli.records.landmark_archive import NEVER_NS, LandmarkArchive
 from cvslam_cli.sim.scenario import load_scenario
 from cvslam_cli.sim.stage import run as simulate
 from tests.scenarios import small_uav_scenario
@@ -95,7 +95,10 @@ def test_prior_map_round_trip_seeds_the_book_and_keeps_sessions(worlds, tmp_path
     _, b = load_prior_map(str(tmp_path / "again.npz"))
     for name in ("p_nav_m", "cov_nav_m2", "descriptor", "last_seen_ns", "session"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
-    prior = PriorMap(a)
+    prior = PriorMap(a, inflation=4.0)
+    # the common offset's covariance: the smallest archived variance per axis, inflated
+    var = np.diagonal(a.cov_nav_m2, axis1=1, axis2=2)
+    np.testing.assert_allclose(np.diag(prior.offset_covariance()), 4.0 * var.min(axis=0))
     book = LandmarkBook(1)
     prior.seed(book)
     n = len(a)
@@ -202,3 +205,22 @@ def test_bad_prior_maps_are_one_clear_error(worlds, tmp_path, cvslam):
     _one_line(cvslam("fuse", run, "--force", "--prior-map", run), "own output")
     with pytest.raises(CvslamError, match="no such run directory"):
         load_prior_map(str(tmp_path / "missing.npz"))
+
+
+def test_sessions_round_trip_and_older_files_read_as_session_0(worlds, tmp_path):
+    """map.npz and map.csv keep each landmark's session; files written before sessions
+    existed (no `session` entry or column) read as one session, 0."""
+    a = load_map(worlds["map3"] / "fuse" / "map.npz")
+    sessions = np.arange(len(a)) % 3
+    b = LandmarkArchive(**{**vars(a), "session": sessions})
+    save_map(tmp_path / "map.npz", b)
+    np.testing.assert_array_equal(load_map(tmp_path / "map.npz").session, sessions)
+    write_map_csv(tmp_path / "map.csv", b.landmark_map())
+    np.testing.assert_array_equal(read_map_csv(tmp_path / "map.csv").session, sessions)
+    old = {k: v for k, v in np.load(tmp_path / "map.npz").items() if k != "session"}
+    save_npz(tmp_path / "old.npz", old)
+    assert not load_map(tmp_path / "old.npz").session.any()
+    pd.read_csv(tmp_path / "map.csv").drop(columns="session").to_csv(
+        tmp_path / "old.csv", index=False
+    )
+    assert not read_map_csv(tmp_path / "old.csv").session.any()
