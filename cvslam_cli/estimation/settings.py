@@ -49,7 +49,7 @@ class SlamSettings:
     joint_init_window_ns: int = 200_000_000
     reactivation: bool = True  # evicted landmarks brought back (reactivation.py)
     reactivation_inflation: float = 4.0
-    prior_map_inflation: float = 4.0  # a prior map's landmarks (prior_map.py)
+    prior_map_inflation: float = 16.0  # a prior map's landmarks (prior_map.py)
     reactivation_min_absence_ns: int = 20_000_000_000
     reactivation_min_landmarks: int = 3
     max_reactivated_per_frame: int = 15

@@ -178,6 +178,30 @@ def test_a_map_of_another_world_never_localises(worlds, tmp_path, cvslam):
     assert s["vehicles"]["uav2"]["prior_landmarks"] == 0 and s["prior_map"]["observed_again"] == 0
 
 
+def test_a_map_with_the_right_descriptors_in_the_wrong_places_never_localises(
+    worlds, tmp_path, cvslam
+):
+    """The hard case of a foreign map, where descriptors pair up (images of a similar
+    texture): world 3's own map with its landmarks' positions shuffled. Every descriptor
+    pair is then a geometric outlier, and the PnP inliers, the reprojection in both images
+    and the same pose over consecutive frames must refuse it."""
+    a = load_map(worlds["map3"] / "fuse" / "map.npz")
+    perm = np.random.default_rng(0).permutation(len(a))
+    shuffled = LandmarkArchive(
+        **{**vars(a), "p_nav_m": a.p_nav_m[perm], "cov_nav_m2": a.cov_nav_m2[perm]}
+    )
+    save_map(tmp_path / "shuffled.npz", shuffled)
+    run = _one_vehicle(worlds["sim3"], "uav2", tmp_path / "uav2")
+    r = cvslam("fuse", run, "--prior-map", tmp_path / "shuffled.npz", "--set", UNKNOWN_UAV2)
+    assert r.code == 0, r.err
+    v = _summary(run)["vehicles"]["uav2"]
+    assert v["localised_after_s"] is None and v["prior_landmarks"] == 0
+    # with a known initial pose, nothing consistent is found either
+    r = cvslam("fuse", run, "--force", "--prior-map", tmp_path / "shuffled.npz")
+    assert r.code == 0, r.err
+    assert _summary(run)["vehicles"]["uav2"]["prior_landmarks"] == 0
+
+
 def _one_line(r, *words: str) -> None:
     assert r.code == 1 and r.err.count("\n") == 1, r.err
     for w in words:
