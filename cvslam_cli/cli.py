@@ -669,6 +669,15 @@ def do_extract(
     help="Each vehicle in its own filter (for comparison with the cooperative default); "
     "outputs in RUN_DIR/fuse_single (fuse_ekf_single).",
 )
+@click.option(
+    "--prior-map",
+    "prior_map",
+    metavar="OTHER",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Start from the map of an earlier run: its run directory (OTHER/fuse/map.npz) or a "
+    "map.npz; the same as --set fuse.prior_map=OTHER (docs/fuse_outputs.md, Multi-session).",
+)
 @_log_option("the motion data")
 @_FORCE_STAGE
 @config_options
@@ -676,6 +685,7 @@ def fuse(
     run_dir: Path,
     filter_kind: str | None,
     single: bool,
+    prior_map: Path | None,
     log_paths: tuple[Path, ...],
     force: bool,
     cfg: Config,
@@ -685,6 +695,8 @@ def fuse(
     Writes trajectories, dead reckoning, pose covariances, the landmark map, timeline,
     events and result.mcap to RUN_DIR/fuse (docs/fuse_outputs.md).
     """
+    if prior_map is not None:
+        cfg = dataclasses.replace(cfg, fuse=dataclasses.replace(cfg.fuse, prior_map=str(prior_map)))
     paths, cfg = bound_logs(log_paths, cfg)
     do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=paths, force=force)
 
@@ -752,7 +764,20 @@ def do_fuse(
         if v.localised_after_s is None:
             log.warning("%s: initial pose unknown and never localised in the map", name)
         elif v.localised_after_s > 0:
-            log.info("%s: localised in the map %.2f s after its start", name, v.localised_after_s)
+            log.info(
+                "%s: localised in the map %.2f s after its start on %d inlier landmarks",
+                name,
+                v.localised_after_s,
+                v.localised_inliers,
+            )
+        if v.first_prior_s is not None:
+            log.info(
+                "%s: %d prior-map landmarks brought into the filter, the first %.2f s after "
+                "its start",
+                name,
+                v.prior_landmarks,
+                v.first_prior_s,
+            )
     log.info(
         "%s: %d landmarks mapped, %.1fx real time (%.1f s)%s; wrote %s",
         summary.filter,
@@ -1025,6 +1050,9 @@ def do_run(
             continue
         filter_kind = "ekf" if comparison.startswith("ekf") else "hinf"
         single = comparison.endswith("single")
+        if single and cfg.fuse.prior_map:
+            log.warning("run: %s skipped: it cannot start from fuse.prior_map", comparison)
+            continue
         do_fuse(cfg, run_dir, filter_kind=filter_kind, single=single, log_paths=(), force=force)
     if cfg.run.mosaic:
         do_mosaic(cfg, run_dir, source=None, gsd_m=None, log_paths=(), force=force)

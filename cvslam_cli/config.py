@@ -256,6 +256,7 @@ class InitialConfig:
     localise_min_inliers: int = opt(12, lo=4)
     localise_reprojection_px: float = opt(2.0, lo=0.0, lo_open=True)
     localise_prior_probability: float = opt(0.999, lo=0.5, hi=1.0, lo_open=True)
+    localise_confirm_frames: int = opt(3, lo=1)
 
 
 @dataclass(frozen=True)
@@ -290,6 +291,7 @@ class MapConfig:
     joint_init_window_s: float = opt(0.2, lo=0.0)
     reactivation: bool = True
     reactivation_inflation: float = opt(4.0, lo=1.0)
+    prior_map_inflation: float = opt(16.0, lo=1.0)
     reactivation_min_absence_s: float = opt(20.0, lo=0.0)
     reactivation_min_landmarks: int = opt(3, lo=1)
     max_reactivated_per_frame: int = opt(15, lo=1)
@@ -316,7 +318,11 @@ class DivergenceConfig:
 
 @dataclass(frozen=True)
 class FuseConfig:
+    """`cvslam fuse`. `prior_map`: a map saved by an earlier run to start from (its run
+    directory, whose `fuse/map.npz` is read, or a `map.npz`; empty: none)."""
+
     filter: Literal["hinf", "ekf"] = "hinf"
+    prior_map: str = ""
     hinf: HinfConfig = opt(HinfConfig())
     motion: MotionConfig = opt(MotionConfig())
     initial: InitialConfig = opt(InitialConfig())

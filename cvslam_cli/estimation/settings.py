@@ -49,6 +49,7 @@ class SlamSettings:
     joint_init_window_ns: int = 200_000_000
     reactivation: bool = True  # evicted landmarks brought back (reactivation.py)
     reactivation_inflation: float = 4.0
+    prior_map_inflation: float = 16.0  # a prior map's landmarks (prior_map.py)
     reactivation_min_absence_ns: int = 20_000_000_000
     reactivation_min_landmarks: int = 3
     max_reactivated_per_frame: int = 15
@@ -58,6 +59,7 @@ class SlamSettings:
     localise_min_inliers: int = 12
     localise_reprojection_px: float = 2.0
     localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
+    localise_confirm_frames: int = 3  # in a prior map: frames that must agree (prior_map.py)
     window: WindowSettings = field(default_factory=WindowSettings)
 
 

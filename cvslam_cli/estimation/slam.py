@@ -30,6 +30,10 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
    next update (`window_update.py`, `tracks.py`: the MSCKF's use of the points never
    mapped);
 6. record: pose and its covariance, one timeline row, and the divergence check (`events.py`).
+
+A run started from a prior map (`prior_map.py`) has the prior's landmarks in its book from
+the start, out of the state: step 2 brings them in as it brings back evicted landmarks, and
+a vehicle whose pose is unknown is localised in them.
 """
 
 from __future__ import annotations
@@ -64,6 +68,12 @@ from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
+from cvslam_cli.estimation.prior_map import (
+    OFFSET_BLOCK,
+    PriorLandmarks,
+    PriorLocalisation,
+    PriorMap,
+)
 from cvslam_cli.estimation.reactivation import Reactivation
 from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
@@ -99,6 +109,9 @@ class SlamResult:
     gamma_raised: int
     # every landmark observation used, ids as in `landmarks` (fuse/observations.npz, refine)
     observations: ObservationTable | None = None
+    # with a prior map: its common offset b (3,) as estimated at the end, and its covariance
+    prior_offset_m: F64 | None = None
+    prior_offset_cov_m2: F64 | None = None
 
     @property
     def landmarks(self) -> LandmarkMap:
@@ -126,12 +139,16 @@ class Slam:
         vehicles: list[VehicleInput],
         settings: SlamSettings,
         progress: Callable[[int], None] | None = None,
+        prior: LandmarkArchive | None = None,
     ) -> None:
         self.settings = settings
         self.vehicles = vehicles
         self.names = [v.name for v in vehicles]
+        # a map from an earlier run (prior_map.py): its common offset is a block of the state
+        self.prior = None if prior is None else PriorMap(prior, settings.prior_map_inflation)
         self.state = JointState(
-            [(v.name, v.model, v.x0, v.P0) for v in vehicles],
+            [(v.name, v.model, v.x0, v.P0) for v in vehicles]
+            + ([self.prior.offset_block()] if self.prior is not None else []),
             coordinates(
                 resolve(settings.landmark_coordinates, [v.model.kind for v in vehicles])[0]
             ),
@@ -156,6 +173,17 @@ class Slam:
             else None
         )  # fmt: skip
         self.reactivation = Reactivation(self.state, self.book, settings, self.updater.R_pixel_hat)
+        self.prior_landmarks: PriorLandmarks | None = None
+        self.prior_localisation: PriorLocalisation | None = None
+        if self.prior is not None:
+            self.prior.seed(self.book)
+            self.prior_landmarks = PriorLandmarks(
+                self.state, self.book, settings, self.updater.R_pixel_hat, self.prior
+            )
+            self.prior_localisation = PriorLocalisation(
+                self.state, self.book, self.runs, self.updater, self.events, settings,
+                self.prior_landmarks, self.mapper, self.cooperation.bounded_vehicles,
+            )  # fmt: skip
         self.monitor = DivergenceMonitor(self.names, settings.nis_window, settings.nis_per_dof_max)
         self.timeline: list[dict[str, Any]] = []
         self.divergence: Divergence | None = None
@@ -191,7 +219,9 @@ class Slam:
         frame = FrameMatches.of(run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio)
         localising = not run.localised
         found = None
-        if localising:  # pose unknown: localise in the shared map (an update of its own)
+        if localising and self.prior_localisation is not None:  # in the prior map too
+            out = self.prior_localisation.localise_vehicle(run, frame)
+        elif localising:  # pose unknown: localise in the shared map (an update of its own)
             out = self.cooperation.localise_vehicle(run, frame)
         else:
             found, out = self._associate(run, frame)
@@ -205,11 +235,12 @@ class Slam:
             self._flush_window()
         # landmark uncertainty of this frame's updated landmarks (before any eviction)
         lm_std = self._landmark_sigma(out.updated_slots)
+        prior_used = self.prior.count(self.book, out.updated_slots) if self.prior else 0
         if not localising:
             self._map(run, frame, out)
             self._window(run, frame, out)
         self._next_candidates(run, frame, out)
-        self._record(run, frame, out, lm_std, t_start)
+        self._record(run, frame, out, lm_std, t_start, prior_used)
 
     def _predict(self, run: VehicleRun, t_ns: int) -> None:
         """Step 1 (eq. 1-2, 13)."""
@@ -266,10 +297,22 @@ class Slam:
 
     def _reactivate(self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome) -> int:
         """Step 2b: evicted landmarks that the frame's free matches re-observe brought back
-        into the state (`reactivation.py`), logged; returns how many."""
-        if not self.reactivation.enabled:
+        into the state (`reactivation.py`), then the prior map's (`prior_map.py`), logged;
+        returns how many."""
+        free = out.types == TYPE_3
+        n = self._bring_back(self.reactivation, "reactivation", run, frame, free)
+        if self.prior_landmarks is not None:
+            n += self._bring_back(self.prior_landmarks, "prior_map", run, frame, free)
+        return n
+
+    def _bring_back(
+        self, finder: Reactivation, kind: str, run: VehicleRun, frame: FrameMatches, free: Any
+    ) -> int:
+        """The landmarks out of the state that `finder` finds among the `free` matches (M,)
+        brought in (as many as fit), logged as `kind` events; their matches no longer free."""
+        if not finder.enabled:
             return 0
-        found = self.reactivation.find(run, frame, out.types == TYPE_3)
+        found = finder.find(run, frame, free)
         if not len(found.ids):
             return 0
         pose = VehiclePose.of(self.state, run.vin)
@@ -280,11 +323,10 @@ class Slam:
         if not len(room):
             return 0
         ids = found.ids[room]
-        self.reactivation.reinsert(run, ids)
+        finder.reinsert(run, ids)
+        free[found.match_rows[room]] = False
         others = self.book.other_observers(ids, run.index, self.names)
-        self.events.add(
-            frame.stamp_ns, "reactivation", run.vin.name, others, len(ids), found.absent_ns[room]
-        )
+        self.events.add(frame.stamp_ns, kind, run.vin.name, others, len(ids), found.absent_ns[room])
         return len(ids)
 
     def _update(
@@ -318,9 +360,9 @@ class Slam:
         if out.loop >= s.loop_closure_min_landmarks:
             self.events.add(t_ns, "loop_closure", vin.name, "", out.loop, types.absent_ns[loops])
         first = types.type[found.match_rows] == TYPE_2
-        if out.type2:
-            ids = self.book.slot_ids[out.updated_slots[first]]
-            others = self.book.other_observers(ids, run.index, self.names)
+        ids = self.book.slot_ids[out.updated_slots[first]]
+        others = self.book.other_observers(ids, run.index, self.names) if out.type2 else ""
+        if others:  # none: the prior map's landmarks only (its `prior_map` events)
             self.events.add(
                 t_ns, "cross_vehicle", vin.name, others, out.type2, types.absent_ns[first]
             )
@@ -371,9 +413,16 @@ class Slam:
             run.candidates = None
 
     def _record(
-        self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome, lm_std: float, t_start: float
+        self,
+        run: VehicleRun,
+        frame: FrameMatches,
+        out: FrameOutcome,
+        lm_std: float,
+        t_start: float,
+        prior_used: int = 0,
     ) -> None:
-        """Step 6: the frame's estimate, timeline row and divergence check."""
+        """Step 6: the frame's estimate, timeline row and divergence check; `prior_used`:
+        the prior map's landmarks among the updated."""
         st = self.state
         vin = run.vin
         pose = VehiclePose.of(st, vin)
@@ -404,6 +453,7 @@ class Slam:
                 "type3": out.type3,
                 "loop_closure": out.loop,
                 "reactivated": out.reactivated,
+                "prior": prior_used,
                 "localised": run.localised,
                 "sigma_pos_m": float(np.sqrt(np.trace(pose_cov[:3, :3]))),
                 "sigma_att_rad": float(np.sqrt(np.trace(pose_cov[3:, 3:]))),
@@ -435,10 +485,16 @@ class Slam:
             slots = np.arange(st.n_landmarks)
             book.store_estimates(slots, st.landmarks(), st.landmark_covariances(slots))
         archive = book.archive(self.names, st.coords.name)
+        if self.prior is not None:
+            archive = self.prior.merged_archive(archive)
         tracks = {r.vin.name: _track(r.vin, r.stamps_ns, r.x, r.pose_cov) for r in self.runs}
+        b, B = None, None
+        if self.prior is not None:
+            rows = st.vehicles[OFFSET_BLOCK].index
+            b, B = st.x[rows].copy(), st.P[np.ix_(rows, rows)].copy()
         return SlamResult(
             tracks, self.timeline, self.events.rows, archive, self.divergence,
-            self.updater.gamma.raised_count, _observations(self.runs),
+            self.updater.gamma.raised_count, _observations(self.runs), b, B,
         )  # fmt: skip
 
 

@@ -9,6 +9,10 @@ Outputs, in `<run>/fuse/` (NH-infinity) or `<run>/fuse_ekf/` (`--filter ekf`), w
 temporary folder renamed when complete (docs/fuse_outputs.md): per vehicle `<v>.tum`,
 `<v>_deadreckoning.tum`, `<v>_pose_cov.npz`; `map.csv`, `map.ply`, `timeline.csv`,
 `events.csv`, `result.mcap`.
+
+With `fuse.prior_map` (`--prior-map`) the filter starts from an earlier run's map file
+(`prior_map.py`); the map file's content is one of the inputs whose checksums decide
+whether the stage is up to date.
 """
 
 from __future__ import annotations
@@ -69,13 +73,14 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
 )
 from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs, require_logs, with_run_bindings
-from cvslam_cli.io.map_file import save_map
+from cvslam_cli.io.map_file import load_prior_map, save_map
 from cvslam_cli.io.observations_file import save_observations
 from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
 from cvslam_cli.records.features import FeatureSet
+from cvslam_cli.records.landmark_archive import LandmarkArchive
 from cvslam_cli.records.log import ImuSample, OdometryRecord, PoseRecord
 from cvslam_cli.records.poses import PoseTable
 
@@ -96,6 +101,12 @@ class VehicleFuse:
     # seconds from the vehicle's start until its pose was known: 0 for a known initial
     # pose, the localisation time for an unknown one, None if it was never localised
     localised_after_s: float | None = 0.0
+    # the localisation's inlier landmarks (unknown initial pose; 0 otherwise)
+    localised_inliers: int = 0
+    # with a prior map: its landmarks this vehicle brought into the filter (at the
+    # localisation and later), and seconds from its start to the first of them (None: none)
+    prior_landmarks: int = 0
+    first_prior_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -455,6 +466,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         joint_init_window_ns=int(m.joint_init_window_s * 1e9),
         reactivation=m.reactivation,
         reactivation_inflation=m.reactivation_inflation,
+        prior_map_inflation=m.prior_map_inflation,
         reactivation_min_absence_ns=int(m.reactivation_min_absence_s * 1e9),
         reactivation_min_landmarks=m.reactivation_min_landmarks,
         max_reactivated_per_frame=m.max_reactivated_per_frame,
@@ -463,6 +475,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         localise_min_inliers=cfg.initial.localise_min_inliers,
         localise_reprojection_px=cfg.initial.localise_reprojection_px,
         localise_prior_chi2=float(chi2.ppf(cfg.initial.localise_prior_probability, 3)),
+        localise_confirm_frames=cfg.initial.localise_confirm_frames,
         window=WindowSettings(
             window=cfg.window.clones,
             max_tracks=cfg.window.max_tracks,
@@ -591,7 +604,12 @@ def _outputs(out: FuseFolder, vehicles: Sequence[str]) -> list[Path]:
 
 
 def _filter(
-    inputs: list[VehicleInput], settings: SlamSettings, single: bool, desc: str, progress: bool
+    inputs: list[VehicleInput],
+    settings: SlamSettings,
+    single: bool,
+    desc: str,
+    progress: bool,
+    prior: LandmarkArchive | None = None,
 ) -> tuple[SlamResult, float]:
     """(the filter's result over every frame, its wall time): one filter for all vehicles,
     or one per vehicle (`single`) with the results merged."""
@@ -606,7 +624,7 @@ def _filter(
         if single:
             res = merge_results([Slam([v], settings, progress=bar.update).run() for v in inputs])
         else:
-            res = Slam(inputs, settings, progress=bar.update).run()
+            res = Slam(inputs, settings, progress=bar.update, prior=prior).run()
     return res, time.perf_counter() - t0
 
 
@@ -638,13 +656,12 @@ def _vehicle_fuse(
     steps = np.diff(tr.p_nav_m, axis=0)
     loops = sum(1 for e in res.events if e["event"] == "loop_closure" and e["vehicle"] == v.name)
     localised_after_s: float | None = 0.0
+    inliers = 0
     if not v.pose_known:
-        found = [
-            e["stamp_ns"]
-            for e in res.events
-            if e["event"] == "localisation" and e["vehicle"] == v.name
-        ]
-        localised_after_s = (found[0] - v.start_ns) * 1e-9 if found else None
+        found = [e for e in res.events if e["event"] == "localisation" and e["vehicle"] == v.name]
+        localised_after_s = (found[0]["stamp_ns"] - v.start_ns) * 1e-9 if found else None
+        inliers = int(found[0]["landmarks"]) if found else 0
+    prior = [e for e in res.events if e["event"] == "prior_map" and e["vehicle"] == v.name]
     return VehicleFuse(
         frames=len(tr.stamps_ns),
         model=v.model.kind,
@@ -658,6 +675,9 @@ def _vehicle_fuse(
         else float("nan"),
         loop_closures=loops,
         localised_after_s=localised_after_s,
+        localised_inliers=inliers,
+        prior_landmarks=sum(int(e["landmarks"]) for e in prior),
+        first_prior_s=(prior[0]["stamp_ns"] - v.start_ns) * 1e-9 if prior else None,
     )
 
 
@@ -696,9 +716,11 @@ def run(
     cfg = dataclasses.replace(cfg, logs=with_run_bindings(cfg.logs, run_dir))
     logs_used = all_log_paths(list(log_paths) or layout.find_logs(metas), cfg.logs)
     require_logs(logs_used)  # a missing log named before the plan reads it
+    prior_path, prior = _prior_map(cfg.fuse, out, single)
     rd = RunDir(run_dir)
     outputs = _outputs(out, list(features))
-    plan = rd.plan(out.name, cfg, ("logs", "fuse"), [*files, *logs_used], outputs, force)
+    inputs_used = [*files, *logs_used, *([prior_path] if prior_path else [])]
+    plan = rd.plan(out.name, cfg, ("logs", "fuse"), inputs_used, outputs, force)
     if plan.action == "skip":
         log.info("fuse: %s is up to date (same config and inputs); --force to redo it", out.path)
         return FuseSummary(out.path, True, kind, single, {}, 0, 0.0, 0.0, 0)
@@ -709,7 +731,7 @@ def run(
     _log_settings(cfg.fuse, kind, settings, inputs)
     coords, why = resolve(settings.landmark_coordinates, [v.model.kind for v in inputs])
     log.info("fuse: landmarks in %s coordinates (%s)", coords, why)
-    res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress)
+    res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress, prior)
     dr = {v.name: dead_reckoning_track(v) for v in inputs}
     _refuse_diverged(res, inputs, layout, out.name, kind)
     span_s = max((v.features.frame_stamp_ns[-1] - v.start_ns) * 1e-9 for v in inputs)
@@ -731,8 +753,84 @@ def run(
         span_s / wall if wall > 0 else float("inf"),
         res.gamma_raised,
     )
-    rd.record(out.name, plan, outputs, _record_summary(cfg, summary, inputs), wall)
+    record = _record_summary(cfg, summary, inputs)
+    if prior is not None and prior_path is not None:
+        record["prior_map"] = _prior_summary(prior_path, prior, res, run_dir)
+    rd.record(out.name, plan, outputs, record, wall)
     return summary
+
+
+def _prior_map(
+    cfg: FuseConfig, out: FuseFolder, single: bool
+) -> tuple[Path | None, LandmarkArchive | None]:
+    """(the map file, its archive) of `fuse.prior_map`, or (None, None) without one."""
+    if not cfg.prior_map:
+        return None, None
+    path, prior = load_prior_map(cfg.prior_map)
+    if single:
+        raise CvslamError(
+            f"fuse.prior_map: {path}: --single does not start from a prior map (each vehicle's "
+            "filter would bring its own copy of it); fuse without --single"
+        )
+    if path.resolve().parent == out.path.resolve():
+        raise CvslamError(
+            f"fuse.prior_map: {path} is this run's own output, which the run replaces; copy it "
+            "elsewhere first"
+        )
+    log.info(
+        "fuse: starting from the prior map %s: %d landmarks of %s (sessions up to %d)",
+        path,
+        len(prior),
+        ", ".join(prior.vehicles),
+        int(prior.session.max()) if len(prior) else 0,
+    )
+    return path, prior
+
+
+def _prior_summary(
+    path: Path, prior: LandmarkArchive, res: SlamResult, run_dir: Path
+) -> dict[str, Any]:
+    """run.yaml's record of the prior map: the file, its landmarks, how many this run used
+    again and how many it added (docs/fuse_outputs.md, "Multi-session")."""
+    a = res.archive
+    n = len(prior)
+    used = int(np.sum(a.n_observations[:n] > prior.n_observations)) if n else 0
+    session = int(prior.session.max()) + 1 if n else 1
+    try:
+        shown = str(path.resolve().relative_to(run_dir.resolve()))
+    except ValueError:
+        shown = str(path)
+    log.info(
+        "fuse: prior map: %d of its %d landmarks observed again, %d new landmarks (session %d)",
+        used,
+        n,
+        len(a) - n,
+        session,
+    )
+    return {
+        "file": shown,
+        "landmarks": n,
+        "observed_again": used,
+        "new_landmarks": len(a) - n,
+        "session": session,
+        **_offset(res),
+    }
+
+
+def _offset(res: SlamResult) -> dict[str, Any]:
+    """The prior map's common offset the run estimated (`prior_map.py`), for run.yaml."""
+    if res.prior_offset_m is None or res.prior_offset_cov_m2 is None:
+        return {}
+    sigma = np.sqrt(np.maximum(np.diag(res.prior_offset_cov_m2), 0.0))
+    log.info(
+        "fuse: prior map offset (%s) m, sigma (%s) m",
+        ", ".join(f"{x:.3f}" for x in res.prior_offset_m),
+        ", ".join(f"{x:.3f}" for x in sigma),
+    )
+    return {
+        "offset_m": [round(float(x), 4) for x in res.prior_offset_m],
+        "offset_sigma_m": [round(float(x), 4) for x in sigma],
+    }
 
 
 def _plain(d: dict[str, Any]) -> dict[str, Any]:

@@ -52,7 +52,9 @@ MAP_COLUMNS = (
     "first_seen_ns",
     "last_seen_ns",
     "in_state",
+    "session",
 )
+SESSION_COLUMN = "session"  # written; a file without it (earlier runs) reads as session 0
 TRUE_ID_COLUMN = "true_id"  # read when present; `write_map_csv` does not write it
 OBSERVER_SEPARATOR = ";"
 
@@ -73,6 +75,7 @@ def map_frame(table: LandmarkMap) -> pd.DataFrame:
             "first_seen_ns": table.first_seen_ns,
             "last_seen_ns": table.last_seen_ns,
             "in_state": table.in_state,
+            "session": table.session,
         },
         columns=list(MAP_COLUMNS),
     )
@@ -98,7 +101,7 @@ def read_map_csv(path: Path) -> LandmarkMap:
     if not rows:
         raise CvslamError(f"{path}: empty file, expected a header row {','.join(MAP_COLUMNS)}")
     head = [h.strip() for h in rows[0][1]]
-    missing = [c for c in MAP_COLUMNS if c not in head]
+    missing = [c for c in MAP_COLUMNS if c not in head and c != SESSION_COLUMN]
     if missing:
         raise CvslamError(
             f"{path}: missing column(s) {', '.join(missing)} (expected {','.join(MAP_COLUMNS)})"
@@ -148,6 +151,9 @@ def read_map_csv(path: Path) -> LandmarkMap:
             true_id=np.array(column(TRUE_ID_COLUMN, int), dtype=np.int64)
             if TRUE_ID_COLUMN in index
             else np.full(len(body), UNKNOWN_TRUE_ID, dtype=np.int64),
+            session=np.array(column(SESSION_COLUMN, int), dtype=np.int64)
+            if SESSION_COLUMN in index
+            else None,
         )
     except (ValueError, OverflowError) as exc:
         raise CvslamError(f"{path}: not a usable map ({exc})") from None

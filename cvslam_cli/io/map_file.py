@@ -11,6 +11,7 @@ import numpy as np
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.npz import load_versioned_npz, save_npz
+from cvslam_cli.io.run_layout import RunLayout
 from cvslam_cli.records.landmark_archive import LandmarkArchive
 
 MAP_FORMAT = "cvslam.map"
@@ -30,7 +31,10 @@ _ARRAYS = (
     "in_state",
     "evicted_ns",
     "reactivations",
+    "session",
 )
+# entries a file may lack (written by an earlier cvslam of the same version): read as None
+_OPTIONAL = ("session",)
 
 
 def save_map(path: Path, archive: LandmarkArchive) -> None:
@@ -59,7 +63,30 @@ def load_map(path: Path) -> LandmarkArchive:
         return LandmarkArchive(
             vehicles=tuple(str(v) for v in data["vehicles"].reshape(-1)),
             coordinates=str(data["coordinates"]),
-            **{name: data[name] for name in _ARRAYS},
+            **{name: data[name] for name in _ARRAYS if name in data or name not in _OPTIONAL},
         )
     except (KeyError, ValueError) as exc:
         raise CvslamError(f"{path}: corrupt map file ({exc})") from None
+
+
+def prior_map_path(spec: str) -> Path:
+    """The map file `fuse.prior_map` names: a run directory's `fuse/map.npz`, or a map
+    file itself. `CvslamError` naming the key and the path when neither exists."""
+    path = Path(spec).expanduser()
+    if path.is_dir():
+        found = RunLayout(path).fuse().map_npz
+        if not found.is_file():
+            raise CvslamError(
+                f"fuse.prior_map: {path} is a folder without {found.relative_to(path)} (expected "
+                f"a run directory fused with this cvslam, `cvslam fuse {path}`, or a map.npz)"
+            )
+        return found
+    if not path.exists():
+        raise CvslamError(f"fuse.prior_map: {path}: no such run directory or map file")
+    return path
+
+
+def load_prior_map(spec: str) -> tuple[Path, LandmarkArchive]:
+    """(the map file, its archive) of `fuse.prior_map` (`prior_map_path`, `load_map`)."""
+    path = prior_map_path(spec)
+    return path, load_map(path)

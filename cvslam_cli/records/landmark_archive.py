@@ -46,7 +46,10 @@ class LandmarkArchive:
     - `in_state` (N,) bool at the end; `evicted_ns` (N,) int64 its last eviction
       (`NEVER_NS`: never evicted); `reactivations` (N,) int64 times it was brought back;
     - `coordinates`: how the filter wrote landmarks in its state ("cartesian",
-      "inverse_depth"; the stored Gaussians are nav-frame either way).
+      "inverse_depth"; the stored Gaussians are nav-frame either way);
+    - `session` (N,) int64: the mapping session that created the landmark (0: the first;
+      a run started from a prior map, `estimation/prior_map.py`, keeps the prior's and
+      numbers its own landmarks one more than the prior's largest). None: all 0.
     """
 
     vehicles: tuple[str, ...]
@@ -63,6 +66,7 @@ class LandmarkArchive:
     evicted_ns: I64
     reactivations: I64
     coordinates: str
+    session: I64 | None = None
 
     def __post_init__(self) -> None:
         vehicles = tuple(self.vehicles)
@@ -87,6 +91,9 @@ class LandmarkArchive:
         check("in_state", ("N",), "b", np.bool_)
         check("evicted_ns", ("N",), "iu", np.int64)
         check("reactivations", ("N",), "iu", np.int64)
+        if self.session is None:
+            object.__setattr__(self, "session", np.zeros(len(self.landmark_id), dtype=np.int64))
+        check("session", ("N",), "iu", np.int64)
         if len(np.unique(self.landmark_id)) != len(self.landmark_id):
             raise ValueError("LandmarkArchive.landmark_id: ids must be unique")
         if not isinstance(self.coordinates, str):
@@ -117,6 +124,7 @@ class LandmarkArchive:
             last_seen_ns=last,
             in_state=self.in_state,
             true_id=self.true_id,
+            session=self.session,
         )
 
 
@@ -152,5 +160,6 @@ def merge_archives(archives: Sequence[LandmarkArchive]) -> LandmarkArchive:
         in_state=cat("in_state"),
         evicted_ns=cat("evicted_ns"),
         reactivations=cat("reactivations"),
+        session=cat("session"),
         coordinates=coords.pop() if len(coords) == 1 else ";".join(sorted(coords)),
     )

@@ -26,7 +26,9 @@ class LandmarkMap:
     - `first_seen_ns`, `last_seen_ns` (N,) int64 stamps of the first and last observation;
     - `in_state` (N,) bool: still in the filter state at the end (False: evicted earlier);
     - `true_id` (N,) int64: the simulator's id of the stereo match that created the landmark,
-      `UNKNOWN_TRUE_ID` (-1) unknown, -2 an outlier the simulator injected.
+      `UNKNOWN_TRUE_ID` (-1) unknown, -2 an outlier the simulator injected;
+    - `session` (N,) int64: the mapping session that created it (`LandmarkArchive.session`;
+      None: all 0, one session).
 
     Arrays are converted to these dtypes; a wrong shape or kind is a ValueError.
     """
@@ -40,6 +42,7 @@ class LandmarkMap:
     last_seen_ns: I64
     in_state: BoolArray
     true_id: I64
+    session: I64 | None = None
 
     def __post_init__(self) -> None:
         dims: dict[str, int] = {}
@@ -56,6 +59,9 @@ class LandmarkMap:
             check(name, ("N",), "iu", np.int64)
         check("in_state", ("N",), "b", np.bool_)
         check("true_id", ("N",), "iu", np.int64)
+        if self.session is None:
+            object.__setattr__(self, "session", np.zeros(n, dtype=np.int64))
+        check("session", ("N",), "iu", np.int64)
         observers = tuple(self.observers)
         if len(observers) != n or not all(isinstance(o, str) for o in observers):
             raise ValueError(

@@ -136,10 +136,10 @@ def _edit_csv(tmp_path, edit):
             "line 4: column id: expected an integer, got '1.5'",
         ),
         (
-            lambda ls: [*ls[:4], ls[4].rsplit(",", 1)[0] + ",maybe"],
+            lambda ls: [*ls[:4], ",maybe,".join(ls[4].rsplit(",", 2)[::2])],
             "line 5: column in_state: expected True or False, got 'maybe'",
         ),
-        (lambda ls: [*ls[:2], ls[2] + ",extra", *ls[3:]], "line 3: 13 fields, the header has 12"),
+        (lambda ls: [*ls[:2], ls[2] + ",extra", *ls[3:]], "line 3: 14 fields, the header has 13"),
         (lambda ls: [], "empty file"),
         (
             lambda ls: [ls[0], ls[1], ls[1]],

@@ -1,0 +1,386 @@
+"""Multi-session mapping: a `fuse` run that starts from a map saved by an earlier run
+(`fuse.prior_map`, `cvslam fuse RUN --prior-map OTHER`; extension beyond the paper).
+
+The prior map is a `LandmarkArchive` (`map.npz`: every landmark of the earlier run, with its
+nav-frame mean, marginal covariance, descriptor and mean viewing direction). Its landmarks
+are entered in the landmark book before the first frame (`PriorMap.seed`) as landmarks out of
+the state, never observed in this session, and come into the filter only when a vehicle
+sees them:
+
+- a vehicle whose pose is known (in the map's nav frame: the config's or the logs' initial
+  pose) finds them by predicted pixel and descriptor like the session's own evicted
+  landmarks (`PriorLandmarks`, the re-activation step of `reactivation.py`: in view, inside
+  the chi-square window of the vehicle's pose and the landmark's inflated marginal, ratio
+  test, one consistent vehicle correction, at least `reactivation_min_landmarks`), and they
+  are inserted conservatively. What the archive lost is more than for an eviction within a
+  run: every prior landmark was correlated with the earlier session's trajectory, and so
+  with the others: they share that session's error where they were mapped (a drift of the
+  map's frame), which no inflation of independent marginals represents (n landmarks seen
+  together would average it away as if independent; BENCHMARKS.md "Fuse: multi-session"
+  measured the NEES of that). So the map's common error is a state of its own, the offset
+  b (3 numbers, nav frame, m: prior position = true position + b + own error), started at
+  0 with covariance B (`PriorMap.offset_covariance`: the largest common part the archived
+  marginals allow, the per-axis minimum of their variances, inflated like them), added to
+  the joint state as a static block (`OFFSET_BLOCK`, no motion, never bounded). A prior
+  landmark enters as l = m_prior - b with its own error the archived marginal inflated by
+  `prior_map_inflation` (`PriorLandmarks.reinsert`): correlated with b, and through b
+  with every vehicle and landmark the map has touched, as the model says; the vehicles'
+  updates with prior landmarks then estimate b (`run.yaml`: the offset found);
+- a vehicle whose pose is unknown (`fuse.initial.unknown`) is localised in the prior map
+  (`PriorLocalisation`): descriptor pairs with the state's landmarks and the prior's not in
+  the state, PnP inside RANSAC (`localise.py`), the position inside the vehicle's prior
+  (chi-square, 3 dof), and, against false localisation in a map of another place, the same
+  pose found in `localise_confirm_frames` consecutive frames: the offset between the pose
+  found and the vehicle's dead-reckoned prior must repeat within `CONFIRM_RANGE_FRACTION` of
+  the inliers' median range and `CONFIRM_YAW_RAD` (dead reckoning drifts by centimetres
+  between frames, and a PnP pose on a map known to metres scatters by a few per cent of the
+  range; a chance fit to look-alikes does not land on the same offset twice). Then the
+  inlier prior landmarks are inserted (as above), the vehicle relinearised at the pose found
+  and updated with every inlier, as `cooperation.localise_vehicle` does with the state's.
+
+The run's map (`map.npz`, `map.csv`) holds the prior landmarks (updated where they were
+observed again) and the new ones, each with its `session` (`merged_archive`): the prior's
+sessions kept, the new landmarks one more than the prior's largest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cvslam_cli.estimation.association import TYPE_2, classify, record_observations, unassociated
+from cvslam_cli.estimation.events import EventLog
+from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
+from cvslam_cli.estimation.landmark_coordinates import AnchoredInverseDepth
+from cvslam_cli.estimation.localise import Localisation, localise
+from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
+from cvslam_cli.estimation.new_landmarks import NewLandmarks
+from cvslam_cli.estimation.reactivation import MAX_REACTIVATION_STD_M, Found, Reactivation
+from cvslam_cli.estimation.settings import SlamSettings
+from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.update import VisualUpdater
+from cvslam_cli.estimation.vehicle import VehiclePose, VehicleRun
+from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.landmark_archive import LandmarkArchive
+
+OFFSET_BLOCK = "prior map offset"
+"""The joint state's block of the prior map's offset b (not a vehicle name: those are file
+names, without spaces)."""
+
+CONFIRM_RANGE_FRACTION = 0.05
+"""Two localisations of consecutive frames agree when the offsets of their poses from the
+vehicle's dead-reckoned prior differ by less than this fraction of the median range from
+the camera to the inlier landmarks (m / m) ..."""
+CONFIRM_YAW_RAD = float(np.radians(3.0))
+"""... and their heading offsets by less than this (rad)."""
+
+
+@dataclass(frozen=True)
+class _Static:
+    """The 'motion model' of the offset block: n states that never move (`JointState` needs
+    only n; the block is never predicted)."""
+
+    n: int = 3
+    kind: str = "static"
+
+
+class PriorMap:
+    """The prior map of a run: `archive` (N landmarks), which become the book's ids 0..N-1
+    (`seed`); `session` the number of this run's landmarks; `inflation` of the landmarks'
+    marginals (`prior_map_inflation`)."""
+
+    def __init__(self, archive: LandmarkArchive, inflation: float) -> None:
+        self.archive = archive
+        self.n = len(archive)
+        self.session = int(archive.session.max()) + 1 if self.n else 1
+        self.inflation = inflation
+
+    def offset_covariance(self) -> F64:
+        """B (3, 3): the per-axis minimum of the archived landmarks' variances (the common
+        part of every landmark's error is no larger than any one's) times the inflation."""
+        var = np.diagonal(self.archive.cov_nav_m2, axis1=1, axis2=2)
+        var = var[np.all(np.isfinite(var), axis=1)]
+        return self.inflation * np.diag(var.min(axis=0)) if len(var) else np.eye(3)
+
+    def offset_block(self) -> tuple[str, Any, F64, F64]:
+        """The offset b's block for `JointState` (module docstring): x0 = 0, P0 = B."""
+        return OFFSET_BLOCK, _Static(), np.zeros(3), self.offset_covariance()
+
+    def seed(self, book: LandmarkBook) -> None:
+        """Enter the prior landmarks in the (empty) book, out of the state and observed by
+        no vehicle of this session."""
+        if book.count:
+            raise ValueError("PriorMap.seed: the book must be empty")
+        a = self.archive
+        if not self.n:
+            return
+        ids = book.add(a.descriptor, 0, 0, a.true_id, a.view_dir_sum_nav)
+        book.keep_slots(np.zeros(0, dtype=np.int64))  # none in the state
+        book.observers[ids] = 0
+        book.last_seen_ns[ids] = NEVER
+        book.n_observations[ids] = a.n_observations
+        book.first_seen_ns[ids] = a.first_seen_ns
+        book.p_nav_m[ids] = a.p_nav_m
+        book.cov_nav_m2[ids] = a.cov_nav_m2
+        book.evicted_ns[ids] = a.evicted_ns
+        book.reactivations[ids] = a.reactivations
+
+    def count(self, book: LandmarkBook, slots: I64) -> int:
+        """How many of the state's landmarks in `slots` came from the prior map."""
+        return int(np.sum(book.slot_ids[np.asarray(slots, dtype=np.int64)] < self.n))
+
+    def merged_archive(self, session: LandmarkArchive) -> LandmarkArchive:
+        """The run's map: its book's archive `session` (the prior's landmarks first, as
+        seeded) with the prior's vehicles' last observations and sessions restored."""
+        a = self.archive
+        vehicles = list(a.vehicles) + [v for v in session.vehicles if v not in a.vehicles]
+        last = np.full((len(session), len(vehicles)), NEVER, dtype=np.int64)
+        last[: self.n, : len(a.vehicles)] = a.last_seen_ns
+        for j, v in enumerate(session.vehicles):
+            col = vehicles.index(v)
+            last[:, col] = np.maximum(last[:, col], session.last_seen_ns[:, j])
+        sessions = np.full(len(session), self.session, dtype=np.int64)
+        sessions[: self.n] = a.session
+        fields = {k: getattr(session, k) for k in _ARCHIVE_FIELDS}
+        return LandmarkArchive(
+            **fields, vehicles=tuple(vehicles), last_seen_ns=last, session=sessions
+        )
+
+
+_ARCHIVE_FIELDS = (
+    "landmark_id", "true_id", "p_nav_m", "cov_nav_m2", "descriptor", "view_dir_sum_nav",
+    "first_seen_ns", "n_observations", "in_state", "evicted_ns", "reactivations", "coordinates",
+)  # fmt: skip
+
+
+class PriorLandmarks(Reactivation):
+    """The prior map's landmarks not yet observed in this session, found in a frame and
+    inserted like evicted ones (module docstring); once observed, an evicted prior landmark
+    is the session's own (`Reactivation`)."""
+
+    def __init__(
+        self,
+        state: JointState,
+        book: LandmarkBook,
+        settings: SlamSettings,
+        R_pixel_hat: F64,
+        prior: PriorMap,
+    ) -> None:
+        k = settings.prior_map_inflation
+        inflated = dataclasses.replace(settings, reactivation_inflation=k)
+        super().__init__(state, book, inflated, R_pixel_hat)
+        self.prior = prior
+
+    @property
+    def enabled(self) -> bool:
+        return self.prior.n > 0
+
+    def archived(self, t_ns: int) -> I64:
+        """Ids of the prior landmarks out of the state, unobserved in this session, whose
+        position is known to `MAX_REACTIVATION_STD_M`."""
+        n, book = self.prior.n, self.book
+        out = ~book.in_state_mask()[:n]
+        unseen = np.all(book.last_seen_ns[:n] == NEVER, axis=1)
+        with np.errstate(invalid="ignore"):
+            trace = np.trace(book.cov_nav_m2[:n], axis1=1, axis2=2)
+            known = np.isfinite(trace) & (trace <= 3 * MAX_REACTIVATION_STD_M**2)
+        return np.flatnonzero(out & unseen & known)
+
+    def reinsert(self, run: VehicleRun, ids: I64) -> I64:
+        """Put the prior landmarks `ids` into the state as l = m_prior - b, their own error
+        the inflated archived marginal E (module docstring); returns their slots."""
+        st, book = self.state, self.book
+        b_rows = st.vehicles[OFFSET_BLOCK].index
+        l_nav = book.p_nav_m[ids] - st.x[b_rows]
+        E = self.settings.reactivation_inflation * book.cov_nav_m2[ids]
+        if st.coords.anchored:
+            slots = _anchored_on_offset(st, run, l_nav, E, b_rows)
+        else:
+            k = len(ids)
+            P_ll = np.tile(st.P[np.ix_(b_rows, b_rows)], (k, k))
+            for j in range(k):
+                P_ll[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += E[j]
+            slots = st.add_landmarks(l_nav, P_ll, -np.tile(st.P[b_rows, :], (k, 1)))
+        book.readmit(ids)
+        return slots
+
+    def find(self, run: VehicleRun, frame: FrameMatches, free: np.ndarray) -> Found:
+        found = super().find(run, frame, free)
+        # no absence to speak of: the landmarks come from another session
+        return Found(found.ids, found.match_rows, np.zeros(len(found.ids), dtype=np.int64))
+
+
+def _anchored_on_offset(st: JointState, run: VehicleRun, l_nav_m: F64, E: F64, b_rows: I64) -> I64:
+    """Landmarks l = m - b (k, 3) with own errors E (k, 3, 3), written relative to a new
+    clone a of run's vehicle pose: theta = f(l, a), so with G = [-T_m 1, T_a] on (b, a),
+    P_tt = G P_(b,a) G^T + T_m E T_m^T and P_tx = G P_(b,a),x (as `reactivation._anchored`,
+    with l correlated with the state through b)."""
+    vin = run.vin
+    pose = VehiclePose.of(st, vin)
+    P_ax = pose.J @ st.P[pose.index, :]
+    key, a_rows = st.add_anchor(
+        np.concatenate([pose.p_nav_m, pose.euler_rad]), P_ax[:, pose.index] @ pose.J.T, P_ax
+    )
+    R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
+    theta, T_m, T_a = AnchoredInverseDepth().from_nav(l_nav_m, st.x[a_rows], R_cb, t_bc)
+    k = len(l_nav_m)
+    G = np.concatenate([-T_m.reshape(3 * k, 3), T_a.reshape(3 * k, 6)], axis=1)
+    rows = np.concatenate([b_rows, a_rows])
+    P_tx = G @ st.P[rows, :]
+    P_tt = P_tx[:, rows] @ G.T
+    own = T_m @ E @ np.swapaxes(T_m, 1, 2)
+    for j in range(k):
+        P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += own[j]
+    return st.add_landmarks(theta, 0.5 * (P_tt + P_tt.T), P_tx, key, R_cb, t_bc)
+
+
+@dataclass(frozen=True)
+class _Pending:
+    """A localisation waiting for confirmation: the offset of the pose found from the
+    vehicle's prior (position (3,), heading) and in how many consecutive frames it held."""
+
+    dp_m: F64
+    dyaw_rad: float
+    frames: int
+
+
+class PriorLocalisation:
+    """Localising vehicles with an unknown initial pose in the state's and the prior map's
+    landmarks (module docstring); `bounded` gives the vehicles NH-infinity's bound is on
+    (`Cooperation.bounded_vehicles`)."""
+
+    def __init__(
+        self,
+        state: JointState,
+        book: LandmarkBook,
+        runs: list[VehicleRun],
+        updater: VisualUpdater,
+        events: EventLog,
+        settings: SlamSettings,
+        prior: PriorLandmarks,
+        mapper: NewLandmarks,
+        bounded: Callable[[], list[str]],
+    ) -> None:
+        self.state = state
+        self.book = book
+        self.runs = runs
+        self.updater = updater
+        self.events = events
+        self.settings = settings
+        self.prior = prior
+        self.mapper = mapper
+        self.bounded = bounded
+        self.names = [r.vin.name for r in runs]
+        self._pending: dict[str, _Pending] = {}
+
+    def localise_vehicle(self, run: VehicleRun, frame: FrameMatches) -> FrameOutcome:
+        """Try to localise run's vehicle from this frame; on the confirming frame, move it
+        to the pose found and update it with the inliers (module docstring)."""
+        s, st, book, vin = self.settings, self.state, self.book, run.vin
+        n = len(frame)
+        out = FrameOutcome(unassociated(n).type)
+        state_ids = book.slot_ids.copy()
+        prior_ids = self.prior.archived(frame.stamp_ns)
+        ids = np.concatenate([state_ids, prior_ids])
+        if len(ids) < s.localise_min_inliers or n < s.localise_min_inliers:
+            return out
+        m = np.concatenate([st.landmarks().reshape(-1, 3), book.p_nav_m[prior_ids]])
+        found = localise(
+            vin.obs, frame.z, frame.desc, m, book.desc[ids], ratio=s.descriptor_ratio,
+            max_descriptor_distance=s.max_descriptor_distance,
+            reprojection_px=s.localise_reprojection_px, min_inliers=s.localise_min_inliers,
+            seed=len(run.stamps_ns),
+        )  # fmt: skip
+        prior = VehiclePose.of(st, vin)
+        if found is None:
+            self._pending.pop(vin.name, None)
+            return out
+        d = found.p_nav_m - prior.p_nav_m
+        if float(d @ np.linalg.solve(prior.cov[:3, :3], d)) > s.localise_prior_chi2:
+            self._pending.pop(vin.name, None)
+            out.rejected = len(found.match_rows)
+            return out
+        # angles continuous with the state's (which are not wrapped)
+        e0 = prior.euler_rad
+        euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
+        ranges = np.linalg.norm(m[found.landmark_rows] - found.p_nav_m, axis=1)
+        tol_m = CONFIRM_RANGE_FRACTION * float(np.median(ranges))
+        if not self._confirmed(vin.name, d, float(euler[2] - e0[2]), tol_m):
+            return out
+        return self._accept(run, frame, found, ids[found.landmark_rows], euler, d, len(state_ids))
+
+    def _confirmed(self, name: str, dp_m: F64, dyaw_rad: float, tol_m: float) -> bool:
+        """Whether this frame's offset confirms the previous frames' to `tol_m` (module
+        docstring)."""
+        last = self._pending.get(name)
+        agrees = (
+            last is not None
+            and float(np.linalg.norm(dp_m - last.dp_m)) < tol_m
+            and abs(dyaw_rad - last.dyaw_rad) < CONFIRM_YAW_RAD
+        )
+        frames = last.frames + 1 if agrees and last is not None else 1
+        self._pending[name] = _Pending(dp_m, dyaw_rad, frames)
+        return frames >= self.settings.localise_confirm_frames
+
+    def _accept(
+        self,
+        run: VehicleRun,
+        frame: FrameMatches,
+        found: Localisation,
+        ids: I64,
+        euler: F64,
+        d: F64,
+        n_state: int,
+    ) -> FrameOutcome:
+        """The vehicle moved to the pose found, the inlier prior landmarks inserted (as many
+        as fit), and one update with every inlier."""
+        s, st, book, vin = self.settings, self.state, self.book, run.vin
+        self._pending.pop(vin.name, None)
+        prior = VehiclePose.of(st, vin)
+        st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
+        from_prior = found.landmark_rows >= n_state
+        protected = np.flatnonzero(np.isin(book.slot_ids, ids[~from_prior]))
+        pick = np.flatnonzero(from_prior)
+        room = self.mapper.make_room(run, self.runs, protected, pick)
+        if len(room):
+            self.prior.reinsert(run, ids[room])
+            self.events.add(frame.stamp_ns, "prior_map", vin.name, "", len(room))
+        # the inliers in the state now (an inlier that did not fit is left out)
+        slot_of = {int(i): k for k, i in enumerate(book.slot_ids)}
+        keep = np.array([int(i) in slot_of for i in ids], dtype=bool)
+        slots = np.array([slot_of[int(i)] for i in ids[keep]], dtype=np.int64)
+        match_rows = found.match_rows[keep]
+        k = len(slots)
+        n = len(frame)
+        pose = VehiclePose.of(st, vin)  # relinearised
+        pred, _ = self.updater.predict(vin, pose, slots)
+        res = self.updater.update(
+            pose.index, pred, np.arange(k), frame.z[match_rows], self.bounded()
+        )
+        ids_used = book.slot_ids[slots]
+        types = classify(
+            np.zeros(n, dtype=bool), match_rows, book.last_seen_ns[ids_used, run.index],
+            frame.stamp_ns, s.loop_closure_gap_ns,
+        )  # fmt: skip
+        out = FrameOutcome(
+            types.type, slots, type2=types.count(TYPE_2), nis=res.nis, dof=4 * k, gamma=res.gamma,
+            gamma_raised=res.gamma_raised,
+        )  # fmt: skip
+        others = book.other_observers(ids_used, run.index, self.names)
+        record_observations(st, book, run, slots, frame.stamp_ns, frame.z[match_rows])
+        run.localised_ns = frame.stamp_ns
+        after_s = (frame.stamp_ns - vin.start_ns) * 1e-9
+        n_prior = int(np.sum(ids_used < self.prior.prior.n))
+        self.events.add(
+            frame.stamp_ns, "localisation", vin.name, others, k, None,
+            f"localised in the prior map {after_s:.2f} s after its start: PnP on "
+            f"{len(found.match_rows)} of {found.candidates} descriptor pairs ({n_prior} "
+            f"prior-map landmarks), the same pose in {s.localise_confirm_frames} consecutive "
+            f"frames, reprojection RMS {found.rms_px:.2f} px, moved {np.linalg.norm(d):.1f} m "
+            "from its prior",
+        )  # fmt: skip
+        return out
