@@ -138,12 +138,15 @@ def _whitened(
 ) -> tuple[F64, F64, F64, F64, F64, float]:
     """P H^T (n, m), S = H P H^T + R and its Cholesky factor C (lower), V = P H^T C^-T,
     w = C^-1 (y - h), NIS = |w|^2. H may touch only the state columns `cols` (then H is
-    (m, len(cols)) and P H^T costs n * len(cols) * m)."""
+    (m, len(cols)) and P H^T costs n * len(cols) * m). P is a covariance, exactly
+    symmetric: with `cols`, P[:, cols] is read as P[cols].T, from P's rows (one contiguous
+    copy each; P[:, cols] reads len(cols) scattered numbers from every row): the same
+    numbers in the same product, P H^T bit for bit."""
     if cols is None:
         PHt = P @ H.T
         S = H @ PHt + R
     else:
-        PHt = P[:, cols] @ H.T
+        PHt = P[cols].T @ H.T  # P[cols].T: the same (n, len(cols)) numbers as P[:, cols]
         S = H @ PHt[cols] + R
     C = np.linalg.cholesky(0.5 * (S + S.T))
     V = solve_triangular(C, PHt.T, lower=True).T  # (n, m)
@@ -280,8 +283,9 @@ def hinf_update_inplace(
     np.matmul(V, V.T, out=P_ekf)
     np.subtract(P, P_ekf, out=P_ekf)
     # P_ekf L^T: a view when every state is bounded (no copy), else the l bounded columns
+    # (P_ekf is exactly symmetric: the transpose of its l rows, one contiguous copy each)
     idx = None if bounded is None else np.asarray(bounded, dtype=np.int64)
-    P_ekf_L = P_ekf if idx is None else P_ekf[:, idx]
+    P_ekf_L = P_ekf if idx is None else P_ekf[idx].T
     P_ekf_LL = P_ekf_L if idx is None else P_ekf_L[idx]
     P_ekf_LL = 0.5 * (P_ekf_LL + P_ekf_LL.T)
     gamma, raised = _existence_check(P_ekf_LL, gamma, margin)
