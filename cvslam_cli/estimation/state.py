@@ -32,7 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult, update_inplace
+from cvslam_cli.estimation.filters import (
+    BlockRows,
+    FilterSettings,
+    GammaPolicy,
+    UpdateResult,
+    update_inplace,
+)
 from cvslam_cli.estimation.landmark_coordinates import Cartesian, LandmarkCoordinates
 from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.records.arrays import F64, I64
@@ -339,13 +345,15 @@ class JointState:
         cols: I64,
         R: F64,
         vehicles: Sequence[str] | None = None,
+        blocks: BlockRows | None = None,
     ) -> UpdateResult:
         """One measurement update (`filters.update_inplace`) with H (m, len(cols)) touching
         state columns `cols`, in place on the state's storage (the result's x and P are the
         views `self.x`, `self.P`; they equal `filters.ekf_update` / `hinf_update` of the
         state before the update). NH-infinity with bound "vehicle": the bound is on the
-        states of `vehicles` (None: every vehicle)."""
+        states of `vehicles` (None: every vehicle). `blocks`: H's known zeros
+        (`filters.BlockRows`)."""
         return update_inplace(
             settings, gamma, self.x, self.P, y, h, H, cols, R,
-            self.bounded_states(settings, vehicles), self._work_view(),
+            self.bounded_states(settings, vehicles), self._work_view(), blocks,
         )  # fmt: skip

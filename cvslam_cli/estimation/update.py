@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
-from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult
+from cvslam_cli.estimation.filters import BlockRows, FilterSettings, GammaPolicy, UpdateResult
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
 from cvslam_cli.records.arrays import F64, I64
@@ -55,7 +55,8 @@ class VisualUpdater:
         # linear in H's columns, so repeated state columns add up
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
         R = np.kron(np.eye(k), self.R_pixel)
+        # P H^T from H's non-zero blocks only (the vehicle's columns, then 4 x d per landmark)
         return self.state.update(
             self.settings, self.gamma, z.reshape(-1), pred.z[rows].reshape(-1), H, cols, R,
-            vehicles=bounded,
+            vehicles=bounded, blocks=BlockRows(nv, 4, d),
         )  # fmt: skip
