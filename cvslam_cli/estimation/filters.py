@@ -70,8 +70,9 @@ from cvslam_cli.records.arrays import F64, I64
 @dataclass(frozen=True)
 class FilterSettings:
     """kind: "ekf" or "hinf"; the H-infinity filter scales Q by c_w^2 and R by c_v^2 (eq.
-    13-14) and puts the bound gamma on the vehicle states ("vehicle") or on all states
-    ("all"); `gamma_margin`: how far above the largest eigenvalue a raised gamma^2 goes."""
+    13-14) and puts the bound gamma on the vehicle states ("vehicle"), on the observing
+    vehicle's only ("observer", `JointState.bounded_states`) or on all states ("all");
+    `gamma_margin`: how far above the largest eigenvalue a raised gamma^2 goes."""
 
     kind: str = "hinf"
     gamma: float = 30.0

@@ -324,13 +324,22 @@ class JointState:
         return kept
 
     def bounded_states(
-        self, settings: FilterSettings, vehicles: Sequence[str] | None = None
+        self,
+        settings: FilterSettings,
+        vehicles: Sequence[str] | None = None,
+        cols: I64 | None = None,
     ) -> I64 | None:
         """State indices NH-infinity's bound is put on: None for bound "all", else the
-        states of `vehicles` (None: every vehicle; possibly none)."""
+        states of `vehicles` (None: every vehicle; possibly none); bound "observer": of
+        those, only the vehicles whose states the update's columns `cols` touch (the
+        observing vehicle: l = 15 bounded states instead of 15 per vehicle)."""
         if settings.bound == "all":
             return None
         names = list(self.vehicles) if vehicles is None else list(vehicles)
+        if settings.bound == "observer" and cols is not None:
+            touched = np.zeros(self.n_vehicle_states, dtype=bool)
+            touched[cols[cols < self.n_vehicle_states]] = True
+            names = [v for v in names if touched[self.vehicles[v].index].any()]
         return np.concatenate(
             [self.vehicles[v].index for v in names] or [np.zeros(0, dtype=np.int64)]
         )
@@ -351,9 +360,9 @@ class JointState:
         state columns `cols`, in place on the state's storage (the result's x and P are the
         views `self.x`, `self.P`; they equal `filters.ekf_update` / `hinf_update` of the
         state before the update). NH-infinity with bound "vehicle": the bound is on the
-        states of `vehicles` (None: every vehicle). `blocks`: H's known zeros
-        (`filters.BlockRows`)."""
+        states of `vehicles` (None: every vehicle); "observer": on those of them that H
+        touches (`bounded_states`). `blocks`: H's known zeros (`filters.BlockRows`)."""
         return update_inplace(
             settings, gamma, self.x, self.P, y, h, H, cols, R,
-            self.bounded_states(settings, vehicles), self._work_view(), blocks,
+            self.bounded_states(settings, vehicles, cols), self._work_view(), blocks,
         )  # fmt: skip
