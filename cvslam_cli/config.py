@@ -190,12 +190,12 @@ class ExtractConfig:
 @dataclass(frozen=True)
 class HinfConfig:
     """Nonlinear H-infinity filter (DESIGN.md section 2): Q_hat = c_w^2 Q, R_hat = c_v^2 R,
-    bound gamma on the vehicle states or on all states."""
+    bound gamma on the vehicle states, the observing vehicle's or all states."""
 
     gamma: float = opt(30.0, lo=0.0, lo_open=True)
     c_w: float = opt(1.0, lo=1.0)
     c_v: float = opt(1.0, lo=1.0)
-    bound: Literal["vehicle", "all"] = "vehicle"
+    bound: Literal["vehicle", "observer", "all"] = "observer"
     gamma_margin: float = opt(10.0, lo=0.0, lo_open=True)
 
 

@@ -70,8 +70,9 @@ from cvslam_cli.records.arrays import F64, I64
 @dataclass(frozen=True)
 class FilterSettings:
     """kind: "ekf" or "hinf"; the H-infinity filter scales Q by c_w^2 and R by c_v^2 (eq.
-    13-14) and puts the bound gamma on the vehicle states ("vehicle") or on all states
-    ("all"); `gamma_margin`: how far above the largest eigenvalue a raised gamma^2 goes."""
+    13-14) and puts the bound gamma on the vehicle states ("vehicle"), on the observing
+    vehicle's only ("observer", `JointState.bounded_states`) or on all states ("all");
+    `gamma_margin`: how far above the largest eigenvalue a raised gamma^2 goes."""
 
     kind: str = "hinf"
     gamma: float = 30.0
@@ -133,17 +134,57 @@ class UpdateResult:
     gamma_raised: bool = False
 
 
+@dataclass(frozen=True)
+class BlockRows:
+    """What is known of a stacked H (m, len(cols)): its first `shared` columns are dense,
+    the next block-diagonal with k blocks of `rows` x `width` (observation j's rows touch the
+    shared columns and block j's only), and the last `tail` columns touched only by the
+    rows after the k blocks' (dense among themselves). `update.py`'s H: the observing
+    vehicle's columns, then each landmark's (its anchor's and its own), then the sliding
+    window's rows on their clones' columns."""
+
+    shared: int
+    rows: int
+    width: int
+    tail: int = 0
+
+    def HP(self, P: F64, H: F64, cols: I64) -> F64:
+        """(P H^T)^T = H P[cols] (m, n) from the non-zero blocks only: the shared part
+        H_v P[cols_v] (rows of the blocks x shared x n), per block H_j P[cols_j] (rows x
+        width x n) and the tail's H_t P[cols_t], in place of the dense m x len(cols) x n
+        product (len(cols) = shared + k width + tail). P is symmetric. Equal to the dense
+        product up to rounding (the sums' terms are grouped differently)."""
+        a, r, d, t = self.shared, self.rows, self.width, self.tail
+        k = (len(cols) - a - t) // d
+        m = k * r  # the blocks' rows; the tail's follow
+        c = len(cols) - t
+        HP = np.empty((len(H), P.shape[0]))
+        HP[:m] = H[:m, :a] @ P[cols[:a]]
+        blocks = H[:m, a:c].reshape(k, r, k, d)[np.arange(k), :, np.arange(k), :]  # (k, r, d)
+        HP[:m] += (blocks @ P[cols[a:c]].reshape(k, d, -1)).reshape(m, -1)
+        if len(H) > m:
+            HP[m:] = H[m:, c:] @ P[cols[c:]]
+        return HP
+
+
 def _whitened(
-    P: F64, H: F64, R: F64, y: F64, h: F64, cols: I64 | None
+    P: F64, H: F64, R: F64, y: F64, h: F64, cols: I64 | None, blocks: BlockRows | None = None
 ) -> tuple[F64, F64, F64, F64, F64, float]:
     """P H^T (n, m), S = H P H^T + R and its Cholesky factor C (lower), V = P H^T C^-T,
     w = C^-1 (y - h), NIS = |w|^2. H may touch only the state columns `cols` (then H is
-    (m, len(cols)) and P H^T costs n * len(cols) * m)."""
+    (m, len(cols)) and P H^T costs n * len(cols) * m). P is a covariance, exactly
+    symmetric: with `cols`, P[:, cols] is read as P[cols].T, from P's rows (one contiguous
+    copy each; P[:, cols] reads len(cols) scattered numbers from every row): the same
+    numbers in the same product, P H^T bit for bit. `blocks`: H's known zeros
+    (`BlockRows`), skipped in P H^T."""
     if cols is None:
         PHt = P @ H.T
         S = H @ PHt + R
+    elif blocks is not None:
+        PHt = blocks.HP(P, H, cols).T
+        S = H @ PHt[cols] + R
     else:
-        PHt = P[:, cols] @ H.T
+        PHt = P[cols].T @ H.T  # P[cols].T: the same (n, len(cols)) numbers as P[:, cols]
         S = H @ PHt[cols] + R
     C = np.linalg.cholesky(0.5 * (S + S.T))
     V = solve_triangular(C, PHt.T, lower=True).T  # (n, m)
@@ -235,14 +276,23 @@ def _check_inplace(x: F64, P: F64, work: F64) -> None:
 
 
 def ekf_update_inplace(
-    x: F64, P: F64, y: F64, h: F64, H: F64, R: F64, cols: I64 | None, work: F64
+    x: F64,
+    P: F64,
+    y: F64,
+    h: F64,
+    H: F64,
+    R: F64,
+    cols: I64 | None,
+    work: F64,
+    blocks: BlockRows | None = None,
 ) -> UpdateResult:
     """`ekf_update` (Joseph form, same expressions in the same order) written into x (n,)
     and P (n, n) in place; `work` (2, n, n) is scratch space (two C-contiguous (n, n)
-    buffers) that must not overlap them. The result holds x and P themselves."""
+    buffers) that must not overlap them; `blocks`: H's known zeros (`BlockRows`). The
+    result holds x and P themselves."""
     _check_inplace(x, P, work)
     w1, w2 = work[0], work[1]
-    PHt, S, C, V, w, nis = _whitened(P, H, R, y, h, cols)
+    PHt, S, C, V, w, nis = _whitened(P, H, R, y, h, cols, blocks)
     K = solve_triangular(C, V.T, lower=True, trans="T").T  # V C^-1 = P H^T S^-1
     D = S @ K.T - PHt.T  # (m, n)
     # P+ = P + K D - (P H^T) K^T, then 0.5 (P+ + P+^T): two n x n x m products
@@ -268,20 +318,23 @@ def hinf_update_inplace(
     margin: float,
     cols: I64 | None,
     work: F64,
+    blocks: BlockRows | None = None,
 ) -> UpdateResult:
     """`hinf_update` written into x (n,) and P (n, n) in place; `work` (2, n, n) is scratch
-    space (two C-contiguous (n, n) buffers) that must not overlap them. Same expressions in
+    space (two C-contiguous (n, n) buffers) that must not overlap them; `blocks`: H's known
+    zeros (`BlockRows`). Same expressions in
     the same order as `hinf_update`: P_ekf = P - V V^T (syrk: exactly symmetric, so no
     symmetrisation pass) in work[0], the existence check on the bounded block, then
     P = P_ekf + G^T G (syrk, in work[1]). The result holds x and P themselves."""
     _check_inplace(x, P, work)
     P_ekf, GtG = work[0], work[1]
-    _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols)
+    _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols, blocks)
     np.matmul(V, V.T, out=P_ekf)
     np.subtract(P, P_ekf, out=P_ekf)
     # P_ekf L^T: a view when every state is bounded (no copy), else the l bounded columns
+    # (P_ekf is exactly symmetric: the transpose of its l rows, one contiguous copy each)
     idx = None if bounded is None else np.asarray(bounded, dtype=np.int64)
-    P_ekf_L = P_ekf if idx is None else P_ekf[:, idx]
+    P_ekf_L = P_ekf if idx is None else P_ekf[idx].T
     P_ekf_LL = P_ekf_L if idx is None else P_ekf_L[idx]
     P_ekf_LL = 0.5 * (P_ekf_LL + P_ekf_LL.T)
     gamma, raised = _existence_check(P_ekf_LL, gamma, margin)
@@ -308,16 +361,17 @@ def update_inplace(
     R: F64,
     bounded: I64 | None,
     work: F64,
+    blocks: BlockRows | None = None,
 ) -> UpdateResult:
     """The filter's measurement update as configured, in place on x (n,) and P (n, n)
     (`work` (2, n, n) scratch): the EKF with R, or NH-infinity with R_hat = c_v^2 R (eq. 14),
     the policy's gamma on the states `bounded` (None: all). NH-infinity bounding no state
-    is the EKF with R_hat."""
+    is the EKF with R_hat. `blocks`: H's known zeros (`BlockRows`)."""
     R_hat = settings.measurement_noise(R)
     if settings.kind == "ekf" or (bounded is not None and len(bounded) == 0):
-        return ekf_update_inplace(x, P, y, h, H, R_hat, cols, work)
+        return ekf_update_inplace(x, P, y, h, H, R_hat, cols, work, blocks)
     res = hinf_update_inplace(
-        x, P, y, h, H, R_hat, policy.gamma, bounded, policy.margin, cols, work
+        x, P, y, h, H, R_hat, policy.gamma, bounded, policy.margin, cols, work, blocks
     )
     policy.record(res)
     return res

@@ -265,7 +265,7 @@ def _log_settings(
             "bound on %s states (fuse.hinf.bound), c_w %g, c_v %g",
             f.gamma,
             f.gamma_margin,
-            "the vehicle" if f.bound == "vehicle" else "all",
+            {"vehicle": "the vehicle", "observer": "the observing vehicle's"}.get(f.bound, "all"),
             f.c_w,
             f.c_v,
         )

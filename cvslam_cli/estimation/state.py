@@ -32,7 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult, update_inplace
+from cvslam_cli.estimation.filters import (
+    BlockRows,
+    FilterSettings,
+    GammaPolicy,
+    UpdateResult,
+    update_inplace,
+)
 from cvslam_cli.estimation.landmark_coordinates import Cartesian, LandmarkCoordinates
 from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.records.arrays import F64, I64
@@ -71,6 +77,11 @@ class JointState:
         self._anchor_key = np.zeros(0, dtype=np.int64)  # stable names of the anchors
         self._anchor_pinned = np.zeros(0, dtype=bool)  # kept even with no landmark on it
         self._next_anchor_key = 0
+        # every landmark's nav position and Jacobian, kept while the landmarks' numbers and
+        # layout are unchanged (`_nav_all`): visibility, association, re-activation and
+        # eviction all read them, several times a frame
+        self._layout = 0  # bumped whenever landmark slots are added or removed
+        self._nav_cache: tuple[int, F64, F64, F64] | None = None
         self.vehicles: dict[str, VehicleBlock] = {}
         start = 0
         for name, model, _, _ in blocks:
@@ -155,10 +166,27 @@ class JointState:
 
     def landmarks_nav(self, slots: I64 | None = None) -> tuple[F64, F64]:
         """Nav-frame positions (k, 3) of the landmarks in `slots` (None: all) and their
-        Jacobians w.r.t. their columns (k, 3, coords.size)."""
-        slots = self._slots(slots)
-        params = self.x[self.landmark_columns(slots)]
-        return self.coords.to_nav(params, self._R_cam_body[slots], self._t_body_cam[slots])
+        Jacobians w.r.t. their columns (k, 3, coords.size) (new arrays)."""
+        m, M = self._nav_all()
+        if slots is None:
+            return m.copy(), M.copy()
+        slots = np.asarray(slots, dtype=np.int64)
+        return m[slots], M[slots]
+
+    def _nav_all(self) -> tuple[F64, F64]:
+        """Every landmark's `coords.to_nav`, computed once for as long as the landmarks'
+        numbers in x and their layout stay the same (x is a public view, so the numbers
+        themselves are compared: O(L size), against the conversion's trigonometry).
+        `to_nav` works row by row, so a row is the same whether converted alone or with
+        all (bit for bit)."""
+        params = self.x[self.landmark_columns(np.arange(self.n_landmarks))]
+        c = self._nav_cache
+        if c is not None and c[0] == self._layout and np.array_equal(c[1], params):
+            return c[2], c[3]
+        m, M = self.coords.to_nav(params, self._R_cam_body, self._t_body_cam)
+        m, M = np.ascontiguousarray(m), np.ascontiguousarray(M)
+        self._nav_cache = (self._layout, params, m, M)
+        return m, M
 
     def landmarks(self, slots: I64 | None = None) -> F64:
         """(k, 3) nav-frame positions of the landmarks in `slots` (None: all)."""
@@ -261,6 +289,7 @@ class JointState:
         self._anchor_of = np.concatenate([self._anchor_of, np.full(k, anchor, dtype=np.int64)])
         self._R_cam_body = np.concatenate([self._R_cam_body, np.broadcast_to(R, (k, 3, 3))])
         self._t_body_cam = np.concatenate([self._t_body_cam, np.broadcast_to(t, (k, 3))])
+        self._layout += 1
         L = self.n_landmarks
         return np.arange(L - k, L)
 
@@ -291,16 +320,26 @@ class JointState:
         self._anchor_key = self._anchor_key[used]
         self._anchor_pinned = self._anchor_pinned[used]
         self._R_cam_body, self._t_body_cam = self._R_cam_body[kept], self._t_body_cam[kept]
+        self._layout += 1
         return kept
 
     def bounded_states(
-        self, settings: FilterSettings, vehicles: Sequence[str] | None = None
+        self,
+        settings: FilterSettings,
+        vehicles: Sequence[str] | None = None,
+        cols: I64 | None = None,
     ) -> I64 | None:
         """State indices NH-infinity's bound is put on: None for bound "all", else the
-        states of `vehicles` (None: every vehicle; possibly none)."""
+        states of `vehicles` (None: every vehicle; possibly none); bound "observer": of
+        those, only the vehicles whose states the update's columns `cols` touch (the
+        observing vehicle: l = 15 bounded states instead of 15 per vehicle)."""
         if settings.bound == "all":
             return None
         names = list(self.vehicles) if vehicles is None else list(vehicles)
+        if settings.bound == "observer" and cols is not None:
+            touched = np.zeros(self.n_vehicle_states, dtype=bool)
+            touched[cols[cols < self.n_vehicle_states]] = True
+            names = [v for v in names if touched[self.vehicles[v].index].any()]
         return np.concatenate(
             [self.vehicles[v].index for v in names] or [np.zeros(0, dtype=np.int64)]
         )
@@ -315,13 +354,15 @@ class JointState:
         cols: I64,
         R: F64,
         vehicles: Sequence[str] | None = None,
+        blocks: BlockRows | None = None,
     ) -> UpdateResult:
         """One measurement update (`filters.update_inplace`) with H (m, len(cols)) touching
         state columns `cols`, in place on the state's storage (the result's x and P are the
         views `self.x`, `self.P`; they equal `filters.ekf_update` / `hinf_update` of the
         state before the update). NH-infinity with bound "vehicle": the bound is on the
-        states of `vehicles` (None: every vehicle)."""
+        states of `vehicles` (None: every vehicle); "observer": on those of them that H
+        touches (`bounded_states`). `blocks`: H's known zeros (`filters.BlockRows`)."""
         return update_inplace(
             settings, gamma, self.x, self.P, y, h, H, cols, R,
-            self.bounded_states(settings, vehicles), self._work_view(),
+            self.bounded_states(settings, vehicles, cols), self._work_view(), blocks,
         )  # fmt: skip

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
-from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy, UpdateResult
+from cvslam_cli.estimation.filters import BlockRows, FilterSettings, GammaPolicy, UpdateResult
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
 from cvslam_cli.records.arrays import F64, I64
@@ -77,12 +77,16 @@ class VisualUpdater:
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
         R = np.kron(np.eye(k), self.R_pixel)
         y, h = z.reshape(-1), pred.z[rows].reshape(-1)
+        tail = 0
         if extra is not None:  # block-diagonal: the two kinds of rows touch their own columns
-            m, c = extra.H.shape
-            H = np.block([[H, np.zeros((len(H), c))], [np.zeros((m, H.shape[1])), extra.H]])
+            m, tail = extra.H.shape
+            H = np.block([[H, np.zeros((len(H), tail))], [np.zeros((m, H.shape[1])), extra.H]])
             cols = np.concatenate([cols, extra.cols])
             R = np.block([[R, np.zeros((len(R), m))], [np.zeros((m, len(R))), extra.R]])
             y, h = np.concatenate([y, extra.r]), np.concatenate([h, np.zeros(m)])
+        # P H^T from H's non-zero blocks only (the vehicle's columns, then 4 x d per
+        # landmark, then the extra rows' own columns)
         return self.state.update(
-            self.settings, self.gamma, y, h, H, cols, R, vehicles=bounded
+            self.settings, self.gamma, y, h, H, cols, R, vehicles=bounded,
+            blocks=BlockRows(nv, 4, d, tail),
         )  # fmt: skip

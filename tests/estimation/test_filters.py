@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from cvslam_cli.estimation.filters import (
+    BlockRows,
     FilterSettings,
     GammaPolicy,
     UpdateResult,
@@ -112,6 +113,52 @@ def test_sparse_columns_equal_the_dense_jacobian():
         np.testing.assert_allclose(a.x, b.x, atol=1e-12)
         np.testing.assert_allclose(a.P, b.P, atol=1e-12)
         assert abs(a.nis - b.nis) < 1e-9
+
+
+def test_block_rows_give_the_dense_update():
+    """H = [H_v | blockdiag(H_1 .. H_k)] (update.py's stacked observations, anchors shared
+    by several landmarks): P H^T from the blocks equals the dense product, and the in-place
+    updates with `blocks` equal those without, to rounding."""
+    x, P, y, h, _, R = _problem(n=40, m=12)
+    k, r, d, nv = 3, 4, 5, 6
+    lm = np.array([[6, 7, 8, 20, 21], [6, 7, 8, 30, 31], [10, 11, 12, 35, 36]])  # 6-8 shared
+    cols = np.concatenate([np.arange(nv), lm.ravel()])
+    Hb = RNG.normal(size=(k, r, d))
+    H = np.zeros((k * r, nv + k * d))
+    H[:, :nv] = RNG.normal(size=(k * r, nv))
+    for j in range(k):
+        H[r * j : r * j + r, nv + d * j : nv + d * j + d] = Hb[j]
+    blocks = BlockRows(nv, r, d)
+    np.testing.assert_allclose(blocks.HP(P, H, cols), H @ P[cols], rtol=0, atol=1e-13)
+    bounded = np.arange(nv)
+    for with_blocks in (None, blocks):
+        xv, Pv, work = _storage(x, P)
+        res = hinf_update_inplace(xv, Pv, y, h, H, R, 4.0, bounded, 0.1, cols, work, with_blocks)
+        ref = hinf_update(x, P, y, h, H, R, 4.0, bounded, 0.1, cols)
+        np.testing.assert_allclose(Pv, ref.P, rtol=0, atol=1e-12 * np.abs(ref.P).max())
+        np.testing.assert_allclose(xv, ref.x, rtol=0, atol=1e-12 * np.abs(ref.x).max())
+        assert abs(res.nis - ref.nis) < 1e-9
+        np.testing.assert_array_equal(Pv, Pv.T)
+        xv, Pv, work = _storage(x, P)
+        ekf_update_inplace(xv, Pv, y, h, H, R, cols, work, with_blocks)
+        ref = ekf_update(x, P, y, h, H, R, cols)
+        np.testing.assert_allclose(Pv, ref.P, rtol=0, atol=1e-12 * np.abs(ref.P).max())
+
+
+def test_block_rows_with_a_tail_give_the_dense_product():
+    """The sliding window's rows stacked after the landmarks' (`update.py`): a tail of rows
+    touching only the last columns (here clone columns one landmark's anchor shares)."""
+    _, P, _, _, _, _ = _problem(n=40, m=12)
+    k, r, d, nv, t, mt = 2, 4, 5, 6, 6, 5
+    lm = np.array([[6, 7, 8, 20, 21], [10, 11, 12, 35, 36]])
+    cols = np.concatenate([np.arange(nv), lm.ravel(), np.arange(6, 12)])  # tail: 6..11
+    H = np.zeros((k * r + mt, nv + k * d + t))
+    H[: k * r, :nv] = RNG.normal(size=(k * r, nv))
+    for j in range(k):
+        H[r * j : r * j + r, nv + d * j : nv + d * j + d] = RNG.normal(size=(r, d))
+    H[k * r :, nv + k * d :] = RNG.normal(size=(mt, t))
+    got = BlockRows(nv, r, d, t).HP(P, H, cols)
+    np.testing.assert_allclose(got, H @ P[cols], rtol=0, atol=1e-13)
 
 
 def test_joseph_form_equals_the_textbook_joseph_form():

@@ -191,6 +191,24 @@ def test_the_bound_is_on_the_given_vehicles_only():
         np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-12)
 
 
+def test_the_observer_bound_is_on_the_observing_vehicle_only():
+    """bound "observer": of the given vehicles, only those whose states the observation
+    touches (vehicle a here: H's columns are a's and two landmarks'); none touched is the
+    EKF with R_hat."""
+    s = FilterSettings("hinf", gamma=1.5, c_v=1.2, bound="observer")
+    for vehicles, bounded in ((None, np.arange(15)), (["a", "b"], np.arange(15)), (["b"], None)):
+        st = _state()
+        y, h, H, cols, R = _observation(st)
+        if bounded is None:
+            ref = ekf_update(st.x.copy(), st.P.copy(), y, h, H, s.r_scale * R, cols=cols)
+        else:
+            ref = hinf_update(st.x.copy(), st.P.copy(), y, h, H, s.r_scale * R, s.gamma,
+                              bounded=bounded, margin=s.gamma_margin, cols=cols)  # fmt: skip
+        st.update(s, GammaPolicy(s), y, h, H, cols, R, vehicles=vehicles)
+        np.testing.assert_allclose(st.x, ref.x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-12)
+
+
 def test_no_vehicle_bounded_is_the_ekf_with_the_scaled_noise():
     s = FilterSettings("hinf", gamma=1.5, c_v=1.2)
     st = _state()
