@@ -74,7 +74,11 @@ def test_refine_writes_fuse_formats_beats_the_filter_and_reports_the_gauge(fused
         assert (out / f"{v}_deadreckoning.tum").exists()
     for name in ("map.csv", "map.ply", "result.mcap", "fuse.config.yaml"):
         assert (out / name).exists(), name
-    assert len(read_map_csv(out / "map.csv")) == len(read_map_csv(run / "fuse" / "map.csv"))
+    # every landmark of the filter's map, and re-association's new points after them
+    ids = read_map_csv(out / "map.csv").landmark_id
+    src_ids = read_map_csv(run / "fuse" / "map.csv").landmark_id
+    assert np.array_equal(ids[: len(src_ids)], src_ids)
+    assert len(ids) > len(src_ids) and ids[len(src_ids) :].min() > src_ids.max()
     summary = RunDir(run).load()["stages"]["fuse_refined"]["summary"]
     assert "first keyframe" in summary["gauge"]
     for v, s in summary["vehicles"].items():
