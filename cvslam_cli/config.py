@@ -378,6 +378,24 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
+class ReassociationConfig:
+    """`cvslam refine`'s re-association (refine/reassociation.py): rounds of associating
+    every landmark in every keyframe (guided matching) and tracking the unmapped stereo
+    matches, each followed by a solution; the first round's pixel gate, the later rounds'
+    chi-square gate probability, the descriptor ratio test and largest distance, the
+    tracks and their shortest length in keyframes, descriptors kept per point."""
+
+    rounds: int = opt(0, lo=0)
+    gate_px: float = opt(4.0, lo=0.0, lo_open=True)
+    gate_probability: float = opt(0.999, lo=0.5, hi=0.999999, lo_open=True)
+    descriptor_ratio: float = opt(0.8, lo=0.0, hi=1.0, lo_open=True)
+    max_descriptor_distance: float = opt(350.0, lo=0.0, lo_open=True)
+    tracks: bool = True
+    min_track_keyframes: int = opt(3, lo=2)
+    max_descriptors: int = opt(8, lo=1)
+
+
+@dataclass(frozen=True)
 class RefineConfig:
     """`cvslam refine`: the fuse folder refined (its trajectories, map and observations),
     keyframes (every n-th frame of each vehicle), the pixel noise of the reprojection
@@ -395,6 +413,7 @@ class RefineConfig:
     max_iterations: int = opt(50, lo=1)
     relative_error_tol: float = opt(1e-6, lo=0.0)
     landmark_covariances: bool = False
+    reassociation: ReassociationConfig = opt(ReassociationConfig())
 
 
 @dataclass(frozen=True)

@@ -13,11 +13,13 @@ from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.vehicle import VehicleInput
 from cvslam_cli.geometry.rotations import make_T, quat_xyzw_to_matrix
-from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.arrays import F64, I64, U8
 from cvslam_cli.records.observations import ObservationTable
 from cvslam_cli.records.poses import PoseTable
+from cvslam_cli.refine.keyframe_features import KeyframeFeatures, find_rows
 from cvslam_cli.refine.keyframes import keep_observations, select_keyframes
 from cvslam_cli.refine.problem import RefineProblem, RefineVehicle
+from cvslam_cli.refine.reassociation import Observed, Points, descriptor_sets
 
 
 def _poses(table: PoseTable) -> F64:
@@ -87,3 +89,56 @@ def build_problem(
         kept.landmark_ids,
         np.asarray(landmark_p_nav_m, dtype=float)[found].reshape(-1, 3),
     )
+
+
+def reassociation_start(
+    vehicles: Sequence[RefineVehicle],
+    features: Sequence[KeyframeFeatures],
+    observations: ObservationTable,
+    landmark_id: I64,
+    landmark_p_nav_m: F64,
+    landmark_desc: U8 | None,
+    landmark_true_id: I64,
+    max_descriptors: int,
+) -> tuple[Points, Observed]:
+    """Re-association's start (`reassociation.py`): every map landmark (`landmark_id` (L,),
+    positions (L, 3), the archive's descriptors (L, D) or None, simulator ids (L,)) as a
+    point, and the filter's observations made at the keyframes of `vehicles` (features
+    `features`, one per vehicle) as the base observations, each with its feature row (found
+    by its pixels) and the landmark's descriptors from those features. A landmark with no
+    descriptor at all (none found, no archive) is never predicted: it keeps only the
+    filter's observations."""
+    names = [v.name for v in vehicles]
+    to_problem = np.array(
+        [names.index(n) if n in names else -1 for n in observations.vehicles], dtype=np.int64
+    )
+    obs_vehicle = to_problem[observations.vehicle] if len(observations) else observations.vehicle
+    kept = keep_observations(
+        obs_vehicle, observations.stamp_ns, observations.landmark_id,
+        [v.stamps_ns for v in vehicles], min_keyframes=1,
+    )  # fmt: skip
+    row_of = {int(i): r for r, i in enumerate(landmark_id)}
+    missing = [int(i) for i in kept.landmark_ids if int(i) not in row_of]
+    if missing:
+        raise ValueError(f"observed landmark ids not in the map: {missing[:5]}")
+    point = np.array([row_of[int(i)] for i in kept.landmark_ids], dtype=np.int64)[kept.landmark]
+    v_of = obs_vehicle[kept.rows]
+    z = observations.z_px[kept.rows]
+    feature = np.full(len(kept.rows), -1, dtype=np.int64)
+    for v, kf in enumerate(features):
+        sel = np.flatnonzero(v_of == v)
+        feature[sel] = find_rows(kf, kept.keyframe[sel], z[sel])
+    base = Observed(v_of, kept.keyframe, point, feature, z, np.ones(len(point), dtype=bool))
+    found = feature >= 0
+    desc = np.zeros((int(found.sum()), features[0].desc.shape[1] if features else 128), np.uint8)
+    for v, kf in enumerate(features):
+        sel = v_of[found] == v
+        desc[sel] = kf.desc[feature[found][sel]]
+    sets, n_desc = descriptor_sets(
+        len(landmark_id), point[found], desc, max_descriptors, start=landmark_desc
+    )
+    points = Points(
+        np.asarray(landmark_id, dtype=np.int64), np.asarray(landmark_p_nav_m, dtype=float),
+        sets, n_desc, np.asarray(landmark_true_id, dtype=np.int64),
+    )  # fmt: skip
+    return points, base

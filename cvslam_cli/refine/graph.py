@@ -324,16 +324,47 @@ def marginal_covariances(
     return np.array(out)
 
 
+def residuals_px(problem: RefineProblem, graph: Graph, values: gtsam.Values) -> F64:
+    """(N, 4) reprojection residuals (u_l, v_l, u_r, v_r) in pixels of every observation at
+    `values` (the reprojection factors follow the motion factors and priors in the graph)."""
+    n = graph.factors["reprojection"]
+    n_prior = graph.graph.size() - n
+    r = np.zeros((len(problem.z_px), 4))
+    for i in range(n):
+        r[i // 2, 2 * (i % 2) : 2 * (i % 2) + 2] = graph.graph.at(n_prior + i).unwhitenedError(
+            values
+        )
+    return r
+
+
+def residual_scale_px(r_px: F64) -> float:
+    """A robust standard deviation of the pixel residuals r_px (N, 4): 1.4826 times the
+    median absolute residual (the Gaussian's, unmoved by a few wrong matches); nan if none."""
+    return float(1.4826 * np.median(np.abs(r_px))) if r_px.size else float("nan")
+
+
+def warm_start(graph: Graph, values: gtsam.Values) -> None:
+    """Replace the vehicle states' initial values of `graph` (poses, velocities, biases,
+    body rates) by those of an earlier solution `values` of a graph over the same vehicles
+    and keyframes (landmark keys differ between such graphs: they are left as they are)."""
+    keys = graph.initial.keys()
+    for key in keys:
+        if gtsam.Symbol(key).chr() == ord("l") or not values.exists(key):
+            continue
+        sym = chr(gtsam.Symbol(key).chr())
+        if sym == "x":
+            graph.initial.update(key, values.atPose3(key))
+        elif sym == "b":
+            graph.initial.update(key, values.atConstantBias(key))
+        else:
+            graph.initial.update(key, values.atVector(key))
+
+
 def _outliers(
     problem: RefineProblem, graph: Graph, values: gtsam.Values, settings: RefineSettings
 ) -> int:
     """Observations whose reprojection residual (both images, 4 dof, in pixel sigmas) is
     beyond the OUTLIER_PROBABILITY chi-square bound at the solution."""
     limit = chi2.ppf(OUTLIER_PROBABILITY, 4)
-    n_prior = graph.graph.size() - graph.factors["reprojection"]
-    d2 = np.zeros(len(problem.z_px))
-    for i in range(graph.factors["reprojection"]):
-        f = graph.graph.at(n_prior + i)
-        r = f.unwhitenedError(values) / settings.pixel_sigma_px
-        d2[i // 2] += float(r @ r)
-    return int(np.sum(d2 > limit))
+    r = residuals_px(problem, graph, values) / settings.pixel_sigma_px
+    return int(np.sum(np.sum(r**2, axis=1) > limit))

@@ -38,6 +38,7 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
 )
 from cvslam_cli.io.logs import all_log_paths, open_logs, require_logs, with_run_bindings
+from cvslam_cli.io.map_file import load_map
 from cvslam_cli.io.observations_file import load_observations
 from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, refined_name
@@ -46,8 +47,11 @@ from cvslam_cli.io.trajectory import read_tum, write_tum
 from cvslam_cli.records.landmarks import LandmarkMap
 from cvslam_cli.records.poses import PoseTable
 from cvslam_cli.refine import graph
-from cvslam_cli.refine.build import build_problem
+from cvslam_cli.refine.build import build_problem, reassociation_start
+from cvslam_cli.refine.keyframe_features import keyframe_features
 from cvslam_cli.refine.problem import RefineProblem, RefineResult, RefineSettings
+from cvslam_cli.refine.reassociation import ReassociationSettings
+from cvslam_cli.refine.rounds import RoundsResult, RoundStats, run_rounds
 
 log = logging.getLogger("cvslam.refine")
 
@@ -77,6 +81,8 @@ class RefineSummary:
     outliers: int
     pixel_sigma_px: float
     wall_s: float
+    rounds: tuple[RoundStats, ...] = ()
+    removed_by_check: int = 0
 
 
 # --------------------------------------------------------------------------- inputs
@@ -142,16 +148,52 @@ def _pose_table(stamps_ns: np.ndarray, T: np.ndarray) -> PoseTable:
     return PoseTable(stamps_ns.astype(np.int64), T[:, :3, 3].copy(), q)
 
 
-def refined_map(source: LandmarkMap, problem: RefineProblem, res: RefineResult) -> LandmarkMap:
-    """The source map with the refined landmarks moved (and their marginal std devs)."""
+def refined_map(
+    source: LandmarkMap,
+    problem: RefineProblem,
+    res: RefineResult,
+    true_id: np.ndarray | None = None,
+) -> LandmarkMap:
+    """The source map with the refined landmarks moved (and their marginal std devs), and
+    the new points of re-association's tracks (ids not in the source map) appended, with
+    their observers, observation counts and times from the problem and `true_id` (L,) (the
+    problem's landmarks' simulator ids; None: unknown)."""
     p = source.p_nav_m.copy()
     std = source.std_m.copy()
     row_of = {int(i): r for r, i in enumerate(source.landmark_id)}
-    rows = np.array([row_of[int(i)] for i in problem.landmark_id], dtype=np.int64)
+    known = np.array([int(i) in row_of for i in problem.landmark_id], dtype=bool)
+    rows = np.array([row_of[int(i)] for i in problem.landmark_id[known]], dtype=np.int64)
+    std_new = np.sqrt(np.maximum(np.diagonal(res.cov, axis1=1, axis2=2), 0.0))
     if len(rows):
-        p[rows] = res.p_nav_m
-        std[rows] = np.sqrt(np.maximum(np.diagonal(res.cov, axis1=1, axis2=2), 0.0))
-    return dataclasses.replace(source, p_nav_m=p, std_m=std)
+        p[rows] = res.p_nav_m[known]
+        std[rows] = std_new[known]
+    out = dataclasses.replace(source, p_nav_m=p, std_m=std)
+    new = np.flatnonzero(~known)
+    if not len(new):
+        return out
+    names = [v.name for v in problem.vehicles]
+    stamp = np.concatenate([v.stamps_ns for v in problem.vehicles])
+    offset = np.cumsum([0] + [len(v.stamps_ns) for v in problem.vehicles])[:-1]
+    obs_stamp = stamp[offset[problem.obs_vehicle] + problem.obs_keyframe]
+    observers, n_obs, first, last = [], [], [], []
+    for j in new:
+        sel = problem.obs_landmark == j
+        observers.append(";".join(sorted({names[v] for v in problem.obs_vehicle[sel]})))
+        n_obs.append(int(sel.sum()))
+        first.append(int(obs_stamp[sel].min()))
+        last.append(int(obs_stamp[sel].max()))
+    tid = np.full(len(new), -1, dtype=np.int64) if true_id is None else true_id[new]
+    return LandmarkMap(
+        np.concatenate([out.landmark_id, problem.landmark_id[new]]),
+        np.vstack([out.p_nav_m, res.p_nav_m[new]]),
+        np.vstack([out.std_m, std_new[new]]),
+        (*out.observers, *observers),
+        np.concatenate([out.n_observations, n_obs]),
+        np.concatenate([out.first_seen_ns, first]),
+        np.concatenate([out.last_seen_ns, last]),
+        np.concatenate([out.in_state, np.zeros(len(new), dtype=bool)]),
+        np.concatenate([out.true_id, tid]),
+    )
 
 
 def _rmse(table: PoseTable, truth: PoseTable | None) -> float:
@@ -202,11 +244,14 @@ def _write(
 # --------------------------------------------------------------------------- stage
 
 
-def _solve(
-    problem: RefineProblem, settings: RefineSettings, progress: bool
-) -> tuple[RefineResult, float]:
-    t0 = time.perf_counter()
+def _lm(
+    problem: RefineProblem, settings: RefineSettings, progress: bool, warm: Any = None
+) -> tuple[graph.Graph, Any, float, float, int]:
+    """Build the graph (its vehicle states started at `warm`, an earlier solution, when
+    given) and solve it with Levenberg-Marquardt, with a progress bar."""
     g = graph.build(problem, settings)
+    if warm is not None:
+        graph.warm_start(g, warm)
     log.info(
         "refine: %d keyframes, %d landmarks, %d observations; factors %s",
         sum(len(v.stamps_ns) for v in problem.vehicles),
@@ -226,7 +271,15 @@ def _solve(
 
     with bar:
         values, e0, e1, iterations = graph.solve(g, settings, step)
-    log.info("refine: error %.6g -> %.6g in %d iterations; marginals", e0, e1, iterations)
+    log.info("refine: error %.6g -> %.6g in %d iterations", e0, e1, iterations)
+    return g, values, e0, e1, iterations
+
+
+def _marginals(
+    problem: RefineProblem, g: graph.Graph, values: Any, settings: RefineSettings,
+    e0: float, e1: float, iterations: int, progress: bool,
+) -> RefineResult:  # fmt: skip
+    log.info("refine: marginals")
     n = sum(len(v.stamps_ns) for v in problem.vehicles)
     if settings.landmark_covariances:
         n += len(problem.landmark_id)
@@ -235,8 +288,49 @@ def _solve(
         leave=False,
     )  # fmt: skip
     with bar:
-        res = graph.result(problem, g, values, settings, e0, e1, iterations, bar.update)
-    return res, time.perf_counter() - t0
+        return graph.result(problem, g, values, settings, e0, e1, iterations, bar.update)
+
+
+def reassociation_settings(cfg: Config) -> ReassociationSettings:
+    rc = cfg.refine.reassociation
+    return ReassociationSettings(
+        rounds=rc.rounds, gate_px=rc.gate_px, gate_probability=rc.gate_probability,
+        descriptor_ratio=rc.descriptor_ratio, max_descriptor_distance=rc.max_descriptor_distance,
+        tracks=rc.tracks, min_track_keyframes=rc.min_track_keyframes,
+        max_descriptors=rc.max_descriptors,
+    )  # fmt: skip
+
+
+def _reassociated(
+    problem0: RefineProblem,
+    features: dict[str, Any],
+    observations: Any,
+    source_map: LandmarkMap,
+    map_npz: Path,
+    settings: RefineSettings,
+    rs: ReassociationSettings,
+    progress: bool,
+) -> RoundsResult:
+    """The rounds of re-association and solutions (`rounds.py`) from the filter's problem."""
+    kfs = [keyframe_features(features[v.name], v.stamps_ns) for v in problem0.vehicles]
+    desc = true_id = None
+    if map_npz.exists():
+        archive = load_map(map_npz)
+        row_of = {int(i): r for r, i in enumerate(archive.landmark_id)}
+        rows = np.array([row_of.get(int(i), -1) for i in source_map.landmark_id], dtype=np.int64)
+        if np.all(rows >= 0):
+            desc, true_id = archive.descriptor[rows], archive.true_id[rows]
+    if true_id is None:
+        true_id = source_map.true_id
+    points, base = reassociation_start(
+        problem0.vehicles, kfs, observations, source_map.landmark_id, source_map.p_nav_m,
+        desc, true_id, rs.max_descriptors,
+    )  # fmt: skip
+    next_id = int(source_map.landmark_id.max()) + 1 if len(source_map) else 0
+    return run_rounds(
+        problem0, kfs, points, base, settings, rs, next_id,
+        lambda problem, warm: _lm(problem, settings, progress, warm), log.info,
+    )  # fmt: skip
 
 
 def run(
@@ -267,6 +361,8 @@ def run(
     rd = RunDir(run_dir)
     outputs = [out.map_csv, out.result_mcap, *(out.trajectory(v) for v in vehicles)]
     inputs_used = [*feature_files, *logs_used, *src_files]
+    if cfg.refine.reassociation.rounds and src.map_npz.exists():
+        inputs_used.append(src.map_npz)  # the landmarks' descriptors
     plan = rd.plan(out.name, cfg, ("logs", "fuse", "refine"), inputs_used, outputs, force)
     if plan.action == "skip":
         log.info("refine: %s is up to date (same config and inputs); --force to redo it", out.path)
@@ -290,15 +386,33 @@ def run(
         raise CvslamError(
             f"{src.observations}: no landmark seen from two keyframes; nothing to refine"
         )
+    rs = reassociation_settings(cfg)
+    rounds: RoundsResult | None = None
     # the sparse factorisations gain from threads, unlike the filter's small matrices
     with threadpool_limits(limits=None):
-        res, _ = _solve(problem, settings, progress)
+        if rs.rounds == 0:
+            g, values, e0, e1, it = _lm(problem, settings, progress)
+        else:
+            try:
+                rounds = _reassociated(
+                    problem, {v: features[v] for v in vehicles}, observations, source_map,
+                    src.map_npz, settings, rs, progress,
+                )  # fmt: skip
+            except ValueError as exc:
+                raise CvslamError(f"{layout.root}: {exc}; run `cvslam extract --force`") from None
+            problem, g, values = rounds.problem, rounds.graph, rounds.values
+            e0, e1, it = rounds.initial_error, rounds.final_error, rounds.iterations
+        res = _marginals(problem, g, values, settings, e0, e1, it, progress)
     tables = {v.name: _pose_table(v.stamps_ns, v.T_nav_body) for v in res.vehicles}
-    lm = refined_map(source_map, problem, res)
+    lm = refined_map(source_map, problem, res, None if rounds is None else rounds.true_id)
     with atomic_dir(out.path) as tmp:
         _write(FuseFolder(tmp), src, tables, res, lm, source)
     wall = time.perf_counter() - t_start
     summary = _summary(out.path, source, problem, res, tracks, tables, truth, settings, wall)
+    if rounds is not None:
+        summary = dataclasses.replace(
+            summary, rounds=rounds.rounds, removed_by_check=rounds.removed
+        )
     rd.record(out.name, plan, outputs, _record(summary), wall)
     return summary
 
@@ -354,4 +468,11 @@ def _record(s: RefineSummary) -> dict[str, Any]:
         "final_error": round(s.final_error, 3),
         "outliers": s.outliers,
         "pixel_sigma_px": s.pixel_sigma_px,
+        "reassociation": {
+            "rounds": [
+                {k: round(x, 6) if isinstance(x, float) else x for k, x in vars(r).items()}
+                for r in s.rounds
+            ],
+            "removed_by_check": s.removed_by_check,
+        },
     }

@@ -63,7 +63,8 @@ def test_fuse_writes_the_observations_it_used(fused):
 
 def test_refine_writes_fuse_formats_beats_the_filter_and_reports_the_gauge(fused, tmp_path, cvslam):
     run = _copy(fused, tmp_path)
-    r = cvslam("refine", run)
+    reassociate = ("--set", "refine.reassociation.rounds=1")
+    r = cvslam("refine", run, *reassociate)
     assert r.code == 0, r.err
     out = run / "fuse_refined"
     for v in ("uav1", "uav2"):
@@ -74,7 +75,11 @@ def test_refine_writes_fuse_formats_beats_the_filter_and_reports_the_gauge(fused
         assert (out / f"{v}_deadreckoning.tum").exists()
     for name in ("map.csv", "map.ply", "result.mcap", "fuse.config.yaml"):
         assert (out / name).exists(), name
-    assert len(read_map_csv(out / "map.csv")) == len(read_map_csv(run / "fuse" / "map.csv"))
+    # every landmark of the filter's map, and re-association's new points after them
+    ids = read_map_csv(out / "map.csv").landmark_id
+    src_ids = read_map_csv(run / "fuse" / "map.csv").landmark_id
+    assert np.array_equal(ids[: len(src_ids)], src_ids)
+    assert len(ids) > len(src_ids) and ids[len(src_ids) :].min() > src_ids.max()
     summary = RunDir(run).load()["stages"]["fuse_refined"]["summary"]
     assert "first keyframe" in summary["gauge"]
     for v, s in summary["vehicles"].items():
@@ -91,7 +96,7 @@ def test_refine_writes_fuse_formats_beats_the_filter_and_reports_the_gauge(fused
     assert "refined" in head.columns
     assert (head["refined"] < head["cooperative NH-inf"]).all()
     # rerun: up to date
-    r = cvslam("refine", run)
+    r = cvslam("refine", run, *reassociate)
     assert r.code == 0 and "up to date" in r.err
 
 
