@@ -200,10 +200,7 @@ def _anchored(
     the anchor's key."""
     a_rows = None if anchor_key is None else st.anchor_rows(anchor_key)
     if anchor_key is None or a_rows is None:
-        P_ax = pose.J @ st.P[pose.index, :]
-        anchor_key, a_rows = st.add_anchor(
-            np.concatenate([pose.p_nav_m, pose.euler_rad]), P_ax[:, pose.index] @ pose.J.T, P_ax
-        )
+        anchor_key, a_rows = pose.clone(st)
     R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
     m, J_pose, J_pc = vin.obs.landmark_jacobians(pose.p_nav_m, pose.euler_rad, p_cam_m)
     theta, T_m, T_a = AnchoredInverseDepth().from_nav(m, st.x[a_rows], R_cb, t_bc)

@@ -221,10 +221,7 @@ def _anchored_on_offset(st: JointState, run: VehicleRun, l_nav_m: F64, E: F64, b
     with l correlated with the state through b)."""
     vin = run.vin
     pose = VehiclePose.of(st, vin)
-    P_ax = pose.J @ st.P[pose.index, :]
-    key, a_rows = st.add_anchor(
-        np.concatenate([pose.p_nav_m, pose.euler_rad]), P_ax[:, pose.index] @ pose.J.T, P_ax
-    )
+    key, a_rows = pose.clone(st)
     R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
     theta, T_m, T_a = AnchoredInverseDepth().from_nav(l_nav_m, st.x[a_rows], R_cb, t_bc)
     k = len(l_nav_m)

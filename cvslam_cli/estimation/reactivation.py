@@ -171,11 +171,7 @@ def _anchored(st: JointState, run: VehicleRun, m_nav_m: F64, C: F64) -> I64:
     relative to a new clone of run's vehicle pose: theta = f(m, a), P_tt = T_m C T_m^T +
     T_a P_aa T_a^T, P_tx = T_a P_ax."""
     vin = run.vin
-    pose = VehiclePose.of(st, vin)
-    P_ax = pose.J @ st.P[pose.index, :]
-    key, a_rows = st.add_anchor(
-        np.concatenate([pose.p_nav_m, pose.euler_rad]), P_ax[:, pose.index] @ pose.J.T, P_ax
-    )
+    key, a_rows = VehiclePose.of(st, vin).clone(st)
     R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
     theta, T_m, T_a = AnchoredInverseDepth().from_nav(m_nav_m, st.x[a_rows], R_cb, t_bc)
     k = len(m_nav_m)

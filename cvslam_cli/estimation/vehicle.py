@@ -112,3 +112,13 @@ class VehiclePose:
     def cov(self) -> F64:
         """(6, 6) covariance of (p, Psi)."""
         return self.J @ self.P_vv @ self.J.T
+
+    def clone(self, state: JointState, pinned: bool = False) -> tuple[int, I64]:
+        """A clone of this pose (p, Psi) = J x_v added to `state` as an anchor, with its
+        covariance J P_vv J^T and cross-covariance J P_v,: with the state; (its key, its 6
+        state rows). `pinned`: kept until released even while no landmark refers to it."""
+        P_ax = self.J @ state.P[self.index, :]
+        return state.add_anchor(
+            np.concatenate([self.p_nav_m, self.euler_rad]), P_ax[:, self.index] @ self.J.T,
+            P_ax, pinned=pinned,
+        )  # fmt: skip

@@ -175,7 +175,7 @@ class SlidingWindow:
         st = self.state
         w = self._windows.setdefault(vin.name, _VehicleWindow())
         pose = VehiclePose.of(st, vin)
-        key = self._clone(pose)
+        key, _ = pose.clone(st, pinned=True)
         w.clones.append(key)
         tracks = w.tracks
         cont, rows = tracks.match(
@@ -208,16 +208,6 @@ class SlidingWindow:
             w.clones.pop(0)
             self._leaving.append(leaving)
         return WindowOutcome(len(cont), *res)
-
-    def _clone(self, pose: VehiclePose) -> int:
-        """A pinned clone of the pose (p, Psi) = J x_v (P_ax = J P_v,: as an anchor)."""
-        st = self.state
-        P_ax = pose.J @ st.P[pose.index, :]
-        key, _ = st.add_anchor(
-            np.concatenate([pose.p_nav_m, pose.euler_rad]), P_ax[:, pose.index] @ pose.J.T,
-            P_ax, pinned=True,
-        )  # fmt: skip
-        return key
 
     def _residuals(self, vin: VehicleInput, t: TrackObservations) -> tuple[int, int, float, int]:
         """The ended tracks' gated rows made pending; (used, rejected, gate NIS, its dof)."""
