@@ -14,14 +14,19 @@ worker imports does not raise there either), so Ctrl-C (sent to the whole proces
 SIGTERM reach only the main process, which cancels the jobs not started, lets the running
 ones finish and shuts the pool down (no worker traceback, no semaphore left behind);
 `cli.main` turns SIGTERM into the same unwinding as Ctrl-C. A worker killed with SIGKILL is
-the WorkerError above.
+the WorkerError above (the map also watches the workers itself, as the pool can miss the death
+of one it started on demand); the workers left are then killed too (SIGTERM, which the pool sends
+them, is ignored).
 """
 
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import contextlib
 import multiprocessing
+import multiprocessing.connection
+import multiprocessing.process
 import signal
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -98,9 +103,12 @@ def ordered_map(
                 raise _died(pending[0][0] if pending else job, describe) from None
             pending.append((job, future))
             if len(pending) >= workers * ahead:
-                yield _result(*pending.popleft(), describe)
+                yield _result(pool, *pending.popleft(), describe)
         while pending:
-            yield _result(*pending.popleft(), describe)
+            yield _result(pool, *pending.popleft(), describe)
+    except WorkerError:
+        _kill_workers(pool)
+        raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -117,11 +125,47 @@ def _stop_signals_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
-def _result(job: J, future: Future[R], describe: Callable[[J], str]) -> R:
-    try:
-        return future.result()
-    except BrokenProcessPool:
-        raise _died(job, describe) from None
+_WATCH_S = 1.0  # how often a wait for a result checks that every worker is alive
+
+
+def _result(
+    pool: ProcessPoolExecutor, job: J, future: Future[R], describe: Callable[[J], str]
+) -> R:
+    """The job's result; WorkerError once any worker has died. The pool notices a death
+    itself only for the workers it knew of when its manager thread last woke, and a worker
+    started on demand (spawn) can be added just after that, so the wait also watches the
+    workers' sentinels itself, every `_WATCH_S` seconds: no worker exits while the map runs."""
+    while True:
+        try:
+            return future.result(timeout=_WATCH_S)
+        except concurrent.futures.TimeoutError:
+            if _a_worker_died(pool):
+                raise _died(job, describe) from None
+        except BrokenProcessPool:
+            raise _died(job, describe) from None
+
+
+def _workers(pool: ProcessPoolExecutor) -> list[multiprocessing.process.BaseProcess]:
+    """The pool's worker processes (the executor keeps them in `_processes`, pid -> Process,
+    on every Python this runs on)."""
+    return list((getattr(pool, "_processes", None) or {}).values())
+
+
+def _a_worker_died(pool: ProcessPoolExecutor) -> bool:
+    sentinels = []
+    for process in _workers(pool):
+        with contextlib.suppress(ValueError):  # not started yet, or already closed
+            sentinels.append(process.sentinel)
+    return bool(sentinels) and bool(multiprocessing.connection.wait(sentinels, timeout=0))
+
+
+def _kill_workers(pool: ProcessPoolExecutor) -> None:
+    """SIGKILL the workers left in a broken pool. The pool's own clean-up only SIGTERMs them,
+    which they ignore (see the module docstring), and one can block forever on a queue lock
+    the dead worker held, so the pool's shutdown would wait on it forever."""
+    for process in _workers(pool):
+        with contextlib.suppress(OSError, ValueError):
+            process.kill()
 
 
 def _died(job: J, describe: Callable[[J], str]) -> WorkerError:

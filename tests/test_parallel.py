@@ -51,6 +51,24 @@ def test_killed_worker_fails_within_seconds_naming_the_job():
     assert got == list(range(named)) and 12 - 2 * 4 <= named <= 12
 
 
+def _long_or_die(job: int) -> int:
+    if job == 0:
+        time.sleep(60)  # the other worker is in the middle of a long job
+    else:
+        time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGKILL)
+    return job
+
+
+def test_killed_worker_fails_at_once_while_another_is_busy():
+    """The pool's clean-up SIGTERMs the workers left, which ignore it: they are killed instead,
+    so the stage ends at once rather than when (or if) their jobs end."""
+    t0 = time.monotonic()
+    with pytest.raises(WorkerError, match="job 0"):
+        list(ordered_map(_long_or_die, [0, 1], workers=2, state={}, describe=lambda j: f"job {j}"))
+    assert time.monotonic() - t0 < 30
+
+
 @pytest.fixture
 def busy_extract(tmp_path):
     """A `cvslam extract --workers 2` subprocess, returned once both workers are running."""
