@@ -156,7 +156,7 @@ def _a_worker_died(pool: ProcessPoolExecutor) -> bool:
     for process in _workers(pool):
         with contextlib.suppress(ValueError):  # not started yet, or already closed
             sentinels.append(process.sentinel)
-    return bool(sentinels) and bool(multiprocessing.connection.wait(sentinels, timeout=0))
+    return bool(multiprocessing.connection.wait(sentinels, timeout=0))
 
 
 def _kill_workers(pool: ProcessPoolExecutor) -> None:

@@ -61,8 +61,9 @@ def _long_or_die(job: int) -> int:
 
 
 def test_killed_worker_fails_at_once_while_another_is_busy():
-    """The pool's clean-up SIGTERMs the workers left, which ignore it: they are killed instead,
-    so the stage ends at once rather than when (or if) their jobs end."""
+    """No other result is coming, so the death must be seen by the map's own watch (the pool
+    can miss a worker it started on demand), and the busy worker, which ignores the pool's
+    SIGTERM, is killed: the stage ends at once rather than when (or if) its job ends."""
     t0 = time.monotonic()
     with pytest.raises(WorkerError, match="job 0"):
         list(ordered_map(_long_or_die, [0, 1], workers=2, state={}, describe=lambda j: f"job {j}"))
