@@ -53,13 +53,15 @@ class LandmarkPrediction:
     """k landmarks predicted into a stereo frame: `slots` (k,), `z` (k, 4) predicted pixels
     (u_l, v_l, u_r, v_r), `H_v` (k, 4, n_v) w.r.t. the vehicle block, `H_m` (k, 4, d)
     w.r.t. the landmark's d columns in the state (`JointState.landmark_columns`), `S` (k, 4, 4)
-    innovation covariances."""
+    innovation covariances; `rectified`: the rig predicts v_l = v_r, so that an update may
+    use the three rows of `observation.mean_v_rows`."""
 
     slots: I64
     z: F64
     H_v: F64
     H_m: F64
     S: F64
+    rectified: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,7 +115,7 @@ def predict_landmarks(
         + H_m @ P_mm @ np.swapaxes(H_m, 1, 2)
         + R
     )
-    return LandmarkPrediction(np.asarray(slots, dtype=np.int64), z, H_v, H_m, S)
+    return LandmarkPrediction(np.asarray(slots, dtype=np.int64), z, H_v, H_m, S, obs.rectified)
 
 
 def in_view(z: F64, depth_m: F64, size_px: NDArray[np.int64], margin_px: float = 0.0) -> NDArray:

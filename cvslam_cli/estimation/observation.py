@@ -13,6 +13,14 @@ Jacobians (vectorised over landmarks):
     d q / d Psi_k = (d C / d Psi_k)^T (m - p)      (`rotations.euler_zyx_derivatives`)
     d (u, v) / d p_c = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]
 
+A rectified rig (`StereoObservationModel.rectified`: both cameras with the same rotation,
+focal length fy and row centre cy, the baseline along the cameras' x axis) predicts v_l = v_r
+for every landmark, so the two v rows of H are one row: with independent pixel noise sigma^2
+per coordinate their mean v = (v_l + v_r) / 2, of noise sigma^2 / 2, carries all they say
+about the state, and the difference v_l - v_r (noise 2 sigma^2) none. `mean_v_rows` maps an
+observation's four rows to those three (u_l, v, u_r): the update is the same to rounding (the
+information H^T R^-1 H and H^T R^-1 (y - h) are unchanged) with a quarter fewer rows.
+
 The inverse model turns a point triangulated in the left camera frame (extract's
 `match_p_cam_m`, covariance `match_cov_cam_m2`) into a nav-frame landmark with a covariance
 that includes the vehicle's pose uncertainty (Jacobians w.r.t. the point and the pose).
@@ -21,6 +29,7 @@ that includes the vehicle's pose uncertainty (Jacobians w.r.t. the point and the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -45,6 +54,22 @@ class StereoObservationModel:
             K=np.stack([c.K for c in cams]),
             R_cam_body=np.stack([c.T_body_cam[:3, :3].T for c in cams]),
             t_body_cam=np.stack([c.T_body_cam[:3, 3] for c in cams]),
+        )
+
+    @cached_property
+    def rectified(self) -> bool:
+        """Whether v_l = v_r for every point (module docstring): equal rotations, equal
+        second rows of K (fy, cy; no skew in v) and a baseline along the cameras' x axis, to
+        1e-9 relative (a calibration's rounding)."""
+        K_l, K_r = self.K
+        R_l, R_r = self.R_cam_body
+        b_cam = R_l @ (self.t_body_cam[1] - self.t_body_cam[0])  # baseline in the left camera
+        tol = 1e-9
+        return bool(
+            np.allclose(R_l, R_r, rtol=0.0, atol=tol)
+            and np.allclose(K_l[1], K_r[1], rtol=tol, atol=0.0)
+            and abs(K_l[1, 0]) <= tol * abs(K_l[1, 1])
+            and np.all(np.abs(b_cam[1:]) <= tol * np.linalg.norm(b_cam))
         )
 
     def predict(self, p_nav_m: F64, euler_rad: F64, m_nav_m: F64) -> tuple[F64, F64, F64]:
@@ -116,3 +141,16 @@ class StereoObservationModel:
         if cov_pose is not None:
             cov = cov + J_pose @ np.asarray(cov_pose) @ np.swapaxes(J_pose, 1, 2)
         return m, cov
+
+
+# (u_l, v_l, u_r, v_r) -> (u_l, (v_l + v_r) / 2, u_r): the rows of a rectified rig's
+# observation that carry information (module docstring)
+MEAN_V_ROWS = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.5], [0.0, 0.0, 1.0, 0.0]])
+
+
+def mean_v_rows(a: F64) -> F64:
+    """(k, 4, ...) rows per observation (u_l, v_l, u_r, v_r) -> (k, 3, ...) (u_l, v, u_r)
+    with v the mean of v_l and v_r (`MEAN_V_ROWS`)."""
+    out = a[:, :3].copy()
+    out[:, 1] = 0.5 * (a[:, 1] + a[:, 3])
+    return out

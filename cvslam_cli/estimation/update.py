@@ -4,7 +4,12 @@ EKF or NH-infinity update of the joint state (`filters.py`).
 Each observation z_j = (u_l, v_l, u_r, v_r) of landmark j gives 4 rows of H, touching the
 observing vehicle's block (H_v,j) and landmark j's columns (H_m,j: its 3, and its anchor's
 with anchored coordinates) only; the noise is the pixel noise, independent per coordinate
-(R = sigma_px^2 I), scaled by the filter (eq. 14). Rows of another kind (the sliding
+(R = sigma_px^2 I), scaled by the filter (eq. 14). With a rectified rig the two v rows are
+one (`observation.mean_v_rows`): 3 rows per observation, (u_l, (v_l + v_r) / 2, u_r) with
+noise sigma_px^2 diag(1, 1/2, 1), the same update to rounding at three quarters of the
+rows. The NIS keeps every coordinate's term: the difference (v_l - v_r), which says nothing
+about the state, adds its own (innovation variance 2 sigma_hat^2), so NIS and its degrees of
+freedom (4 per observation) mean what they meant with four rows. Rows of another kind (the sliding
 window's, `window_update.py`) may be stacked into the same update: one pass over the
 covariance instead of two.
 """
@@ -12,12 +17,13 @@ covariance instead of two.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
 from cvslam_cli.estimation.filters import BlockRows, FilterSettings, GammaPolicy, UpdateResult
+from cvslam_cli.estimation.observation import MEAN_V_ROWS, mean_v_rows
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
 from cvslam_cli.records.arrays import F64, I64
@@ -69,14 +75,22 @@ class VisualUpdater:
         k, nv = len(rows), len(v_idx)
         lm_cols = self.state.landmark_columns(pred.slots[rows])  # (k, d)
         d = lm_cols.shape[1]
-        H_lm = np.zeros((k, 4, k, d))  # landmark j's rows touch only its columns
-        H_lm[np.arange(k), :, np.arange(k), :] = pred.H_m[rows]
-        H = np.concatenate([pred.H_v[rows].reshape(4 * k, nv), H_lm.reshape(4 * k, d * k)], axis=1)
+        z_obs, h_obs, H_v, H_m = z, pred.z[rows], pred.H_v[rows], pred.H_m[rows]
+        R_obs, nis_v_difference = self.R_pixel, 0.0
+        if pred.rectified:  # 3 rows per observation (module docstring)
+            e = (z_obs[:, 1] - h_obs[:, 1]) - (z_obs[:, 3] - h_obs[:, 3])
+            nis_v_difference = float(e @ e) / (self.R_pixel_hat[1, 1] + self.R_pixel_hat[3, 3])
+            z_obs, h_obs, H_v, H_m = (mean_v_rows(a) for a in (z_obs, h_obs, H_v, H_m))
+            R_obs = MEAN_V_ROWS @ self.R_pixel @ MEAN_V_ROWS.T
+        r = len(R_obs)  # rows per observation
+        H_lm = np.zeros((k, r, k, d))  # landmark j's rows touch only its columns
+        H_lm[np.arange(k), :, np.arange(k), :] = H_m
+        H = np.concatenate([H_v.reshape(r * k, nv), H_lm.reshape(r * k, d * k)], axis=1)
         # an anchor shared by several landmarks appears once per landmark: the update is
         # linear in H's columns, so repeated state columns add up
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
-        R = np.kron(np.eye(k), self.R_pixel)
-        y, h = z.reshape(-1), pred.z[rows].reshape(-1)
+        R = np.kron(np.eye(k), R_obs)
+        y, h = z_obs.reshape(-1), h_obs.reshape(-1)
         tail = 0
         if extra is not None:  # block-diagonal: the two kinds of rows touch their own columns
             m, tail = extra.H.shape
@@ -84,9 +98,10 @@ class VisualUpdater:
             cols = np.concatenate([cols, extra.cols])
             R = np.block([[R, np.zeros((len(R), m))], [np.zeros((m, len(R))), extra.R]])
             y, h = np.concatenate([y, extra.r]), np.concatenate([h, np.zeros(m)])
-        # P H^T from H's non-zero blocks only (the vehicle's columns, then 4 x d per
+        # P H^T from H's non-zero blocks only (the vehicle's columns, then r x d per
         # landmark, then the extra rows' own columns)
-        return self.state.update(
+        res = self.state.update(
             self.settings, self.gamma, y, h, H, cols, R, vehicles=bounded,
-            blocks=BlockRows(nv, 4, d, tail),
+            blocks=BlockRows(nv, r, d, tail),
         )  # fmt: skip
+        return replace(res, nis=res.nis + nis_v_difference) if pred.rectified else res

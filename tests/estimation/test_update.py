@@ -1,0 +1,86 @@
+"""The visual update (`update.py`): a rectified rig's three rows per observation give the
+update of the four rows (state, covariance and NIS), for the EKF and NH-infinity."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cvslam_cli.estimation.association import LandmarkPrediction
+from cvslam_cli.estimation.filters import FilterSettings
+from cvslam_cli.estimation.motion.ins import InsNoise
+from cvslam_cli.estimation.motion.models import InsModel
+from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.update import VisualUpdater
+from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
+from cvslam_cli.sim.scenario import StereoRigSpec
+from cvslam_cli.sim.vehicles import build_rig
+
+SIGMA_PX = 0.6
+INS = InsModel(InsNoise(2e-3, 1.7e-4), biases=False)
+
+
+def _rectified_prediction(
+    rng: np.random.Generator, k: int
+) -> tuple[JointState, LandmarkPrediction, np.ndarray]:
+    """A UAV's state (p, v, Psi) with k Cartesian landmarks below it, their prediction
+    through a rectified rig's model, and noisy observations z (k, 4)."""
+    obs = StereoObservationModel.from_rig(
+        build_rig("t", StereoRigSpec(rectified=True, tilt_deg=5.0, lever_arm_m=(0.3, -0.1, 0.2)))
+    )
+    assert obs.rectified
+    p, euler = np.array([10.0, -5.0, -80.0]), np.array([0.05, -0.08, 1.1])
+    body = np.column_stack(
+        [rng.uniform(-20, 20, k), rng.uniform(-30, 30, k), rng.uniform(60, 90, k)]
+    )
+    m = body @ euler_zyx_to_matrix(*euler).T + p
+    x0 = np.concatenate([p, np.zeros(3), euler])
+    st = JointState([("uav", INS, x0, np.eye(9) * 1e-4)])
+    slots = st.add_landmarks(m, np.eye(3 * k) * 0.04, np.zeros((3 * k, st.n)))
+    A = rng.normal(size=(st.n, st.n))
+    st.P[...] = A @ A.T / st.n * 1e-3 + np.eye(st.n) * 1e-4
+    z_pred, H_pose, H_m = obs.predict(p, euler, m)
+    J = np.zeros((6, 9))
+    J[:3, :3] = np.eye(3)
+    J[3:, 6:] = np.eye(3)
+    pred = LandmarkPrediction(
+        slots, z_pred, H_pose @ J, H_m, np.zeros((k, 4, 4)), rectified=obs.rectified
+    )
+    return st, pred, z_pred + rng.normal(0, SIGMA_PX, (k, 4))
+
+
+@pytest.mark.parametrize("kind", ["ekf", "hinf"])
+def test_three_rows_of_a_rectified_rig_give_the_four_rows_update(kind: str) -> None:
+    """(u_l, (v_l + v_r) / 2, u_r) with noise sigma^2 diag(1, 1/2, 1) carries what the four
+    rows say about the state: x, P and the NIS (with the v_l - v_r term) are the same."""
+    rng = np.random.default_rng(5)
+    st, pred, z = _rectified_prediction(rng, 12)
+    np.testing.assert_allclose(pred.z[:, 1], pred.z[:, 3], rtol=1e-12)
+    np.testing.assert_allclose(pred.H_v[:, 1], pred.H_v[:, 3], rtol=1e-9, atol=1e-9)
+    settings = FilterSettings(kind, gamma=0.5, c_v=1.3)  # a gamma that bounds (hinf)
+    rows = np.arange(len(pred.slots))
+    three, four = copy.deepcopy(st), copy.deepcopy(st)
+    res3 = VisualUpdater(three, settings, SIGMA_PX).update(np.arange(9), pred, rows, z, ["uav"])
+    four_pred = replace(pred, rectified=False)
+    res4 = VisualUpdater(four, settings, SIGMA_PX).update(np.arange(9), four_pred, rows, z, ["uav"])
+    assert not np.allclose(three.x, st.x)
+    np.testing.assert_allclose(three.x, four.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(three.P, four.P, rtol=0, atol=1e-14)
+    assert res3.nis == pytest.approx(res4.nis, rel=1e-10)
+    assert res3.gamma == res4.gamma
+    if kind == "hinf":
+        ekf = copy.deepcopy(st)
+        VisualUpdater(ekf, FilterSettings("ekf", c_v=1.3), SIGMA_PX).update(
+            np.arange(9), pred, rows, z, ["uav"]
+        )
+        assert np.trace(three.P[:9, :9]) > np.trace(ekf.P[:9, :9]) * 1.001  # the bound acts
+
+
+def test_a_rig_not_rectified_keeps_its_four_rows() -> None:
+    """An unrectified rig (v_l != v_r) is recognised and its prediction says so."""
+    spec = StereoRigSpec(rectified=False, tilt_deg=5.0, lever_arm_m=(0.3, -0.1, 0.2))
+    assert not StereoObservationModel.from_rig(build_rig("t", spec)).rectified
