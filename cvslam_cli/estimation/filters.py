@@ -49,9 +49,11 @@ writing every n x n product into caller-owned work buffers: no n x n array is al
 update (with the bound on a few states), which keeps large freed temporaries from going back
 to the OS and being faulted in again at every update (BENCHMARKS.md, "Fuse: speed"). numpy
 evaluates `V @ V.T` and `G.T @ G` with syrk, whose result is exactly symmetric, so the
-in-place NH-infinity update needs no symmetrisation pass. Both variants make the same BLAS
-calls on the same operands as the pure functions and give their results bit for bit here
-(the tests allow 1e-12 of the covariance's scale). The EKF's Joseph form keeps its two
+in-place NH-infinity update needs no symmetrisation pass; it calls syrk itself, with
+beta = 1, on one copy of P (P - V V^T, then + G^T G, on one triangle) and mirrors the
+triangle into P once, instead of forming both products apart and adding them: the same
+numbers, two passes over n x n fewer. Both variants give the pure functions' results bit
+for bit here (the tests allow 1e-12 of the covariance's scale). The EKF's Joseph form keeps its two
 n x n x m products and its symmetrisation pass (in the two contiguous work buffers, so that
 the state's strided P is read and written once): about twice the NH-infinity update's
 arithmetic.
@@ -62,7 +64,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg import blas, solve_triangular
 
 from cvslam_cli.records.arrays import F64, I64
 
@@ -322,31 +324,69 @@ def hinf_update_inplace(
 ) -> UpdateResult:
     """`hinf_update` written into x (n,) and P (n, n) in place; `work` (2, n, n) is scratch
     space (two C-contiguous (n, n) buffers) that must not overlap them; `blocks`: H's known
-    zeros (`BlockRows`). Same expressions in
-    the same order as `hinf_update`: P_ekf = P - V V^T (syrk: exactly symmetric, so no
-    symmetrisation pass) in work[0], the existence check on the bounded block, then
-    P = P_ekf + G^T G (syrk, in work[1]). The result holds x and P themselves."""
+    zeros (`BlockRows`). Same expressions in the same order as `hinf_update`, evaluated as
+    two symmetric rank updates of one copy of P (BLAS syrk with beta = 1 on work[0]'s upper
+    triangle: P_ekf = P - V V^T, the existence check on the bounded rows of P_ekf, then
+    P_ekf + G^T G), mirrored into P at the end: one pass over P to read it and one to write
+    it, where forming V V^T and G^T G apart costs two more. The numbers are those of numpy's
+    V @ V.T (syrk as well) and of the subtraction and addition, bit for bit; P stays exactly
+    symmetric. The result holds x and P themselves."""
     _check_inplace(x, P, work)
-    P_ekf, GtG = work[0], work[1]
     _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols, blocks)
-    np.matmul(V, V.T, out=P_ekf)
-    np.subtract(P, P_ekf, out=P_ekf)
-    # P_ekf L^T: a view when every state is bounded (no copy), else the l bounded columns
-    # (P_ekf is exactly symmetric: the transpose of its l rows, one contiguous copy each)
-    idx = None if bounded is None else np.asarray(bounded, dtype=np.int64)
-    P_ekf_L = P_ekf if idx is None else P_ekf[idx].T
-    P_ekf_LL = P_ekf_L if idx is None else P_ekf_L[idx]
+    acc = work[0]  # acc.T is P's F-contiguous copy, the form syrk updates in place
+    np.copyto(acc, P)
+    _syrk_into(acc, V, -1.0)  # upper triangle of acc: P_ekf = P - V V^T
+    if bounded is None:  # every state bounded: L = I, P_ekf L^T is all of P_ekf
+        P_ekf_L = work[1]
+        _mirror_upper(acc, P_ekf_L)
+        P_ekf_LL = P_ekf_L
+    else:
+        idx = np.asarray(bounded, dtype=np.int64)
+        P_ekf_L = _upper_rows(acc, idx).T  # P_ekf L^T (n, l)
+        P_ekf_LL = P_ekf_L[idx]
     P_ekf_LL = 0.5 * (P_ekf_LL + P_ekf_LL.T)
     gamma, raised = _existence_check(P_ekf_LL, gamma, margin)
     x += V @ w
-    if not np.isfinite(gamma):
-        P[...] = P_ekf
-        return UpdateResult(x, P, nis, gamma, False)
-    B = np.linalg.cholesky(gamma**2 * np.eye(len(P_ekf_LL)) - P_ekf_LL)
-    G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n), a new array
-    np.matmul(G.T, G, out=GtG)
-    np.add(P_ekf, GtG, out=P)
+    if np.isfinite(gamma):
+        B = np.linalg.cholesky(gamma**2 * np.eye(len(P_ekf_LL)) - P_ekf_LL)
+        G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n)
+        _syrk_into(acc, G.T, 1.0)  # P_ekf + G^T G
+    _mirror_upper(acc, P)
     return UpdateResult(x, P, nis, gamma, raised)
+
+
+def _syrk_into(acc: F64, A: F64, alpha: float) -> None:
+    """acc's upper triangle += alpha A A^T (A (n, k)), in place (BLAS dsyrk on acc.T, the
+    lower triangle of the F-contiguous transpose; acc (n, n) C-contiguous and symmetric
+    before the first call)."""
+    out = blas.dsyrk(alpha, np.asfortranarray(A), beta=1.0, c=acc.T, trans=0, lower=1,
+                     overwrite_c=1)  # fmt: skip
+    if not np.shares_memory(out, acc):  # f2py copied: acc was not as required
+        raise ValueError("syrk did not update the work buffer in place")
+
+
+def _upper_rows(acc: F64, rows: I64) -> F64:
+    """(l, n) full rows of the symmetric matrix whose upper triangle acc holds: row i is
+    acc[:i, i] (read down the column) then acc[i, i:]."""
+    out = np.empty((len(rows), len(acc)))
+    for r, i in enumerate(rows):
+        out[r, :i] = acc[:i, i]
+        out[r, i:] = acc[i, i:]
+    return out
+
+
+def _mirror_upper(acc: F64, P: F64, block: int = 128) -> None:
+    """P (n, n) = the symmetric matrix whose upper triangle acc holds, every entry written
+    once (by blocks of rows: the block's part right of its diagonal block, its transpose
+    below, and the diagonal block from its upper triangle)."""
+    n = len(acc)
+    for j0 in range(0, n, block):
+        j1 = min(n, j0 + block)
+        right = acc[j0:j1, j1:]
+        P[j0:j1, j1:] = right
+        P[j1:, j0:j1] = right.T
+        D = acc[j0:j1, j0:j1]
+        P[j0:j1, j0:j1] = np.triu(D) + np.triu(D, 1).T
 
 
 def update_inplace(
