@@ -7,11 +7,8 @@
   correction of the observing vehicle's pose as its own frames' associations
   (`association.pose_consistent`). The other vehicle's state is still at that frame (a
   vehicle's state moves only at its own frames), so the update is exact.
-- Localisation of a vehicle whose initial pose is unknown (extension beyond the paper):
-  each of its frames is matched to the landmarks in the state (`localise.py`, PnP); once
-  found, and inside the vehicle's prior (chi-square gate on position), the vehicle is
-  relinearised at that pose (its covariance, the broad prior, is kept) and updated with
-  the inlier landmarks: from then on it is an ordinary vehicle.
+- Localisation of a vehicle whose initial pose is unknown (extension beyond the paper) in
+  the landmarks the others mapped: `unknown_pose.py`.
 - NH-infinity's bound is put on the vehicles whose pose is known (`bounded_vehicles`): a
   vehicle still being localised has a prior far wider than gamma, and bounding it would
   inflate it at every other vehicle's update.
@@ -20,20 +17,13 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from cvslam_cli.estimation.association import (
-    TYPE_2,
     associate,
-    classify,
     in_view_rows,
     pose_consistent,
     record_observations,
-    unassociated,
 )
 from cvslam_cli.estimation.events import EventLog
-from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
-from cvslam_cli.estimation.localise import localise
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
@@ -108,63 +98,3 @@ class Cooperation:
         )  # fmt: skip
         other.candidates = cand.without(rows)
         self.events.add(t_ns, "joint_initialisation", run.vin.name, vin.name, k)
-
-    def localise_vehicle(self, run: VehicleRun, frame: FrameMatches) -> FrameOutcome:
-        """Try to localise run's vehicle (pose unknown) in the landmarks of the state from
-        this frame (module docstring)."""
-        s = self.settings
-        st = self.state
-        vin = run.vin
-        book = self.book
-        n = len(frame)
-        out = FrameOutcome(unassociated(n).type)
-        if st.n_landmarks < s.localise_min_inliers or n < s.localise_min_inliers:
-            return out
-        found = localise(
-            vin.obs, frame.z, frame.desc, st.landmarks(), book.desc[book.slot_ids],
-            ratio=s.descriptor_ratio, max_descriptor_distance=s.max_descriptor_distance,
-            reprojection_px=s.localise_reprojection_px, min_inliers=s.localise_min_inliers,
-            seed=len(run.stamps_ns),
-        )  # fmt: skip
-        if found is None:
-            return out
-        prior = VehiclePose.of(st, vin)
-        d = found.p_nav_m - prior.p_nav_m
-        d2 = float(d @ np.linalg.solve(prior.cov[:3, :3], d))
-        if d2 > s.localise_prior_chi2:
-            out.rejected = len(found.match_rows)
-            return out
-        # angles continuous with the state's (which are not wrapped)
-        e0 = prior.euler_rad
-        euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
-        st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
-        slots = found.landmark_rows
-        pose = VehiclePose.of(st, vin)  # relinearised
-        pred, _ = self.updater.predict(vin, pose, slots)
-        rows = np.arange(len(slots))
-        res = self.updater.update(
-            pose.index, pred, rows, frame.z[found.match_rows], self.bounded_vehicles()
-        )
-        k = len(slots)
-        ids = book.slot_ids[slots]
-        types = classify(
-            np.zeros(n, dtype=bool), found.match_rows, book.last_seen_ns[ids, run.index],
-            frame.stamp_ns, s.loop_closure_gap_ns,
-        )  # fmt: skip
-        out = FrameOutcome(
-            types.type, slots, type2=types.count(TYPE_2), nis=res.nis, dof=4 * k, gamma=res.gamma,
-            gamma_raised=res.gamma_raised,
-        )  # fmt: skip
-        others = book.other_observers(ids, run.index, self.names)
-        record_observations(
-            self.state, self.book, run, slots, frame.stamp_ns, frame.z[found.match_rows]
-        )
-        run.localised_ns = frame.stamp_ns
-        after_s = (frame.stamp_ns - vin.start_ns) * 1e-9
-        self.events.add(
-            frame.stamp_ns, "localisation", vin.name, others, k, None,
-            f"localised {after_s:.2f} s after its start: PnP on {k} of {found.candidates} "
-            f"descriptor pairs, reprojection RMS {found.rms_px:.2f} px, moved "
-            f"{np.linalg.norm(d):.1f} m from its prior",
-        )  # fmt: skip
-        return out

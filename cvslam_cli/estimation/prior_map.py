@@ -26,17 +26,10 @@ sees them:
   `prior_map_inflation` (`PriorLandmarks.reinsert`): correlated with b, and through b
   with every vehicle and landmark the map has touched, as the model says; the vehicles'
   updates with prior landmarks then estimate b (`run.yaml`: the offset found);
-- a vehicle whose pose is unknown (`fuse.initial.unknown`) is localised in the prior map
-  (`PriorLocalisation`): descriptor pairs with the state's landmarks and the prior's not in
-  the state, PnP inside RANSAC (`localise.py`), the position inside the vehicle's prior
-  (chi-square, 3 dof), and, against false localisation in a map of another place, the same
-  pose found in `localise_confirm_frames` consecutive frames: the offset between the pose
-  found and the vehicle's dead-reckoned prior must repeat within `CONFIRM_RANGE_FRACTION` of
-  the inliers' median range and `CONFIRM_YAW_RAD` (dead reckoning drifts by centimetres
-  between frames, and a PnP pose on a map known to metres scatters by a few per cent of the
-  range; a chance fit to look-alikes does not land on the same offset twice). Then the
-  inlier prior landmarks are inserted (as above), the vehicle relinearised at the pose found
-  and updated with every inlier, as `cooperation.localise_vehicle` does with the state's.
+- a vehicle whose pose is unknown (`fuse.initial.unknown`) is localised in the state's and
+  the prior map's landmarks (`unknown_pose.py`: PnP, the prior check, and against false
+  localisation in a map of another place the same pose in `localise_confirm_frames`
+  consecutive frames); the inlier prior landmarks are then inserted as above.
 
 The run's map (`map.npz`, `map.csv`) holds the prior landmarks (updated where they were
 observed again) and the new ones, each with its `session` (`merged_archive`): the prior's
@@ -46,23 +39,17 @@ sessions kept, the new landmarks one more than the prior's largest.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from cvslam_cli.estimation.association import TYPE_2, classify, record_observations, unassociated
-from cvslam_cli.estimation.events import EventLog
-from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
+from cvslam_cli.estimation.frame import FrameMatches
 from cvslam_cli.estimation.landmark_coordinates import AnchoredInverseDepth
-from cvslam_cli.estimation.localise import Localisation, localise
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
-from cvslam_cli.estimation.new_landmarks import NewLandmarks
 from cvslam_cli.estimation.reactivation import MAX_REACTIVATION_STD_M, Found, Reactivation
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
-from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.vehicle import VehiclePose, VehicleRun
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.landmark_archive import LandmarkArchive
@@ -70,13 +57,6 @@ from cvslam_cli.records.landmark_archive import LandmarkArchive
 OFFSET_BLOCK = "prior map offset"
 """The joint state's block of the prior map's offset b (not a vehicle name: those are file
 names, without spaces)."""
-
-CONFIRM_RANGE_FRACTION = 0.05
-"""Two localisations of consecutive frames agree when the offsets of their poses from the
-vehicle's dead-reckoned prior differ by less than this fraction of the median range from
-the camera to the inlier landmarks (m / m) ..."""
-CONFIRM_YAW_RAD = float(np.radians(3.0))
-"""... and their heading offsets by less than this (rad)."""
 
 
 @dataclass(frozen=True)
@@ -233,151 +213,3 @@ def _anchored_on_offset(st: JointState, run: VehicleRun, l_nav_m: F64, E: F64, b
     for j in range(k):
         P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += own[j]
     return st.add_landmarks(theta, 0.5 * (P_tt + P_tt.T), P_tx, key, R_cb, t_bc)
-
-
-@dataclass(frozen=True)
-class _Pending:
-    """A localisation waiting for confirmation: the offset of the pose found from the
-    vehicle's prior (position (3,), heading) and in how many consecutive frames it held."""
-
-    dp_m: F64
-    dyaw_rad: float
-    frames: int
-
-
-class PriorLocalisation:
-    """Localising vehicles with an unknown initial pose in the state's and the prior map's
-    landmarks (module docstring); `bounded` gives the vehicles NH-infinity's bound is on
-    (`Cooperation.bounded_vehicles`)."""
-
-    def __init__(
-        self,
-        state: JointState,
-        book: LandmarkBook,
-        runs: list[VehicleRun],
-        updater: VisualUpdater,
-        events: EventLog,
-        settings: SlamSettings,
-        prior: PriorLandmarks,
-        mapper: NewLandmarks,
-        bounded: Callable[[], list[str]],
-    ) -> None:
-        self.state = state
-        self.book = book
-        self.runs = runs
-        self.updater = updater
-        self.events = events
-        self.settings = settings
-        self.prior = prior
-        self.mapper = mapper
-        self.bounded = bounded
-        self.names = [r.vin.name for r in runs]
-        self._pending: dict[str, _Pending] = {}
-
-    def localise_vehicle(self, run: VehicleRun, frame: FrameMatches) -> FrameOutcome:
-        """Try to localise run's vehicle from this frame; on the confirming frame, move it
-        to the pose found and update it with the inliers (module docstring)."""
-        s, st, book, vin = self.settings, self.state, self.book, run.vin
-        n = len(frame)
-        out = FrameOutcome(unassociated(n).type)
-        state_ids = book.slot_ids.copy()
-        prior_ids = self.prior.archived(frame.stamp_ns)
-        ids = np.concatenate([state_ids, prior_ids])
-        if len(ids) < s.localise_min_inliers or n < s.localise_min_inliers:
-            return out
-        m = np.concatenate([st.landmarks().reshape(-1, 3), book.p_nav_m[prior_ids]])
-        found = localise(
-            vin.obs, frame.z, frame.desc, m, book.desc[ids], ratio=s.descriptor_ratio,
-            max_descriptor_distance=s.max_descriptor_distance,
-            reprojection_px=s.localise_reprojection_px, min_inliers=s.localise_min_inliers,
-            seed=len(run.stamps_ns),
-        )  # fmt: skip
-        prior = VehiclePose.of(st, vin)
-        if found is None:
-            self._pending.pop(vin.name, None)
-            return out
-        d = found.p_nav_m - prior.p_nav_m
-        if float(d @ np.linalg.solve(prior.cov[:3, :3], d)) > s.localise_prior_chi2:
-            self._pending.pop(vin.name, None)
-            out.rejected = len(found.match_rows)
-            return out
-        # angles continuous with the state's (which are not wrapped)
-        e0 = prior.euler_rad
-        euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
-        ranges = np.linalg.norm(m[found.landmark_rows] - found.p_nav_m, axis=1)
-        tol_m = CONFIRM_RANGE_FRACTION * float(np.median(ranges))
-        if not self._confirmed(vin.name, d, float(euler[2] - e0[2]), tol_m):
-            return out
-        return self._accept(run, frame, found, ids[found.landmark_rows], euler, d, len(state_ids))
-
-    def _confirmed(self, name: str, dp_m: F64, dyaw_rad: float, tol_m: float) -> bool:
-        """Whether this frame's offset confirms the previous frames' to `tol_m` (module
-        docstring)."""
-        last = self._pending.get(name)
-        agrees = (
-            last is not None
-            and float(np.linalg.norm(dp_m - last.dp_m)) < tol_m
-            and abs(dyaw_rad - last.dyaw_rad) < CONFIRM_YAW_RAD
-        )
-        frames = last.frames + 1 if agrees and last is not None else 1
-        self._pending[name] = _Pending(dp_m, dyaw_rad, frames)
-        return frames >= self.settings.localise_confirm_frames
-
-    def _accept(
-        self,
-        run: VehicleRun,
-        frame: FrameMatches,
-        found: Localisation,
-        ids: I64,
-        euler: F64,
-        d: F64,
-        n_state: int,
-    ) -> FrameOutcome:
-        """The vehicle moved to the pose found, the inlier prior landmarks inserted (as many
-        as fit), and one update with every inlier."""
-        s, st, book, vin = self.settings, self.state, self.book, run.vin
-        self._pending.pop(vin.name, None)
-        prior = VehiclePose.of(st, vin)
-        st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
-        from_prior = found.landmark_rows >= n_state
-        protected = np.flatnonzero(np.isin(book.slot_ids, ids[~from_prior]))
-        pick = np.flatnonzero(from_prior)
-        room = self.mapper.make_room(run, self.runs, protected, pick)
-        if len(room):
-            self.prior.reinsert(run, ids[room])
-            self.events.add(frame.stamp_ns, "prior_map", vin.name, "", len(room))
-        # the inliers in the state now (an inlier that did not fit is left out)
-        slot_of = {int(i): k for k, i in enumerate(book.slot_ids)}
-        keep = np.array([int(i) in slot_of for i in ids], dtype=bool)
-        slots = np.array([slot_of[int(i)] for i in ids[keep]], dtype=np.int64)
-        match_rows = found.match_rows[keep]
-        k = len(slots)
-        n = len(frame)
-        pose = VehiclePose.of(st, vin)  # relinearised
-        pred, _ = self.updater.predict(vin, pose, slots)
-        res = self.updater.update(
-            pose.index, pred, np.arange(k), frame.z[match_rows], self.bounded()
-        )
-        ids_used = book.slot_ids[slots]
-        types = classify(
-            np.zeros(n, dtype=bool), match_rows, book.last_seen_ns[ids_used, run.index],
-            frame.stamp_ns, s.loop_closure_gap_ns,
-        )  # fmt: skip
-        out = FrameOutcome(
-            types.type, slots, type2=types.count(TYPE_2), nis=res.nis, dof=4 * k, gamma=res.gamma,
-            gamma_raised=res.gamma_raised,
-        )  # fmt: skip
-        others = book.other_observers(ids_used, run.index, self.names)
-        record_observations(st, book, run, slots, frame.stamp_ns, frame.z[match_rows])
-        run.localised_ns = frame.stamp_ns
-        after_s = (frame.stamp_ns - vin.start_ns) * 1e-9
-        n_prior = int(np.sum(ids_used < self.prior.prior.n))
-        self.events.add(
-            frame.stamp_ns, "localisation", vin.name, others, k, None,
-            f"localised in the prior map {after_s:.2f} s after its start: PnP on "
-            f"{len(found.match_rows)} of {found.candidates} descriptor pairs ({n_prior} "
-            f"prior-map landmarks), the same pose in {s.localise_confirm_frames} consecutive "
-            f"frames, reprojection RMS {found.rms_px:.2f} px, moved {np.linalg.norm(d):.1f} m "
-            "from its prior",
-        )  # fmt: skip
-        return out

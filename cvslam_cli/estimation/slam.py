@@ -68,15 +68,11 @@ from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
-from cvslam_cli.estimation.prior_map import (
-    OFFSET_BLOCK,
-    PriorLandmarks,
-    PriorLocalisation,
-    PriorMap,
-)
+from cvslam_cli.estimation.prior_map import OFFSET_BLOCK, PriorLandmarks, PriorMap
 from cvslam_cli.estimation.reactivation import Reactivation
 from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.unknown_pose import UnknownPoseLocaliser
 from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
 from cvslam_cli.estimation.window_update import SlidingWindow
@@ -174,16 +170,15 @@ class Slam:
         )  # fmt: skip
         self.reactivation = Reactivation(self.state, self.book, settings, self.updater.R_pixel_hat)
         self.prior_landmarks: PriorLandmarks | None = None
-        self.prior_localisation: PriorLocalisation | None = None
         if self.prior is not None:
             self.prior.seed(self.book)
             self.prior_landmarks = PriorLandmarks(
                 self.state, self.book, settings, self.updater.R_pixel_hat, self.prior
             )
-            self.prior_localisation = PriorLocalisation(
-                self.state, self.book, self.runs, self.updater, self.events, settings,
-                self.prior_landmarks, self.mapper, self.cooperation.bounded_vehicles,
-            )  # fmt: skip
+        self.localiser = UnknownPoseLocaliser(
+            self.state, self.book, self.runs, self.updater, self.events, settings,
+            self.cooperation.bounded_vehicles, self.mapper, self.prior_landmarks,
+        )  # fmt: skip
         self.monitor = DivergenceMonitor(self.names, settings.nis_window, settings.nis_per_dof_max)
         self.timeline: list[dict[str, Any]] = []
         self.divergence: Divergence | None = None
@@ -219,10 +214,8 @@ class Slam:
         frame = FrameMatches.of(run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio)
         localising = not run.localised
         found = None
-        if localising and self.prior_localisation is not None:  # in the prior map too
-            out = self.prior_localisation.localise_vehicle(run, frame)
-        elif localising:  # pose unknown: localise in the shared map (an update of its own)
-            out = self.cooperation.localise_vehicle(run, frame)
+        if localising:  # pose unknown: localise in the map (an update of its own)
+            out = self.localiser.localise_vehicle(run, frame)
         else:
             found, out = self._associate(run, frame)
             reactivated = self._reactivate(run, frame, out)

@@ -22,7 +22,7 @@ class VehicleInput:
     motion samples `motion_stamps_ns` (K,) with inputs (K, input_size) (empty for the
     constant-velocity model), its features and stereo observation model. `pose_known` False:
     x0 is only a rough prior; the vehicle is localised in the shared map first
-    (`cooperation.localise_vehicle`) and neither updates nor maps until then."""
+    (`unknown_pose.py`) and neither updates nor maps until then."""
 
     name: str
     model: MotionModel
