@@ -375,18 +375,25 @@ def _upper_rows(acc: F64, rows: I64) -> F64:
     return out
 
 
-def _mirror_upper(acc: F64, P: F64, block: int = 128) -> None:
-    """P (n, n) = the symmetric matrix whose upper triangle acc holds, every entry written
-    once (by blocks of rows: the block's part right of its diagonal block, its transpose
-    below, and the diagonal block from its upper triangle)."""
+_MIRROR_BLOCK = 64
+_STRICT_LOWER = np.tril(np.ones((_MIRROR_BLOCK, _MIRROR_BLOCK), dtype=bool), -1)
+
+
+def _mirror_upper(acc: F64, P: F64) -> None:
+    """P (n, n) = the symmetric matrix whose upper triangle acc holds, by blocks of 64 rows
+    (measured fastest of 64 / 128 / 256 at n = 544 and 914): the block's part right of its
+    diagonal block, its transpose below, and the diagonal block from its upper triangle
+    (copied whole, then its strict lower part from its transpose)."""
     n = len(acc)
-    for j0 in range(0, n, block):
-        j1 = min(n, j0 + block)
+    for j0 in range(0, n, _MIRROR_BLOCK):
+        j1 = min(n, j0 + _MIRROR_BLOCK)
         right = acc[j0:j1, j1:]
         P[j0:j1, j1:] = right
         P[j1:, j0:j1] = right.T
         D = acc[j0:j1, j0:j1]
-        P[j0:j1, j0:j1] = np.triu(D) + np.triu(D, 1).T
+        P[j0:j1, j0:j1] = D
+        b = j1 - j0
+        np.copyto(P[j0:j1, j0:j1], D.T, where=_STRICT_LOWER[:b, :b])
 
 
 def update_inplace(
