@@ -290,7 +290,7 @@ class MapConfig:
     event_merge_s: float = opt(5.0, lo=0.0)
     joint_init_window_s: float = opt(0.2, lo=0.0)
     reactivation: bool = True
-    reactivation_inflation: float = opt(4.0, lo=1.0)
+    reactivation_inflation: float = opt(16.0, lo=1.0)
     prior_map_inflation: float = opt(16.0, lo=1.0)
     reactivation_min_absence_s: float = opt(20.0, lo=0.0)
     reactivation_min_landmarks: int = opt(3, lo=1)
