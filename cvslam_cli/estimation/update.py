@@ -44,13 +44,17 @@ class ExtraRows:
 class VisualUpdater:
     """Predictions and stacked updates on `state` with the filter `settings`, the pixel
     noise `pixel_sigma_px` and the run's gamma policy. `R_pixel` (4, 4): the noise of one
-    stereo observation; `R_pixel_hat`: as the filter scales it (eq. 14)."""
+    stereo observation; `R_pixel_hat`: as the filter scales it (eq. 14); `R_mean_v` (3, 3):
+    the noise of a rectified rig's three rows (module docstring)."""
 
     def __init__(self, state: JointState, settings: FilterSettings, pixel_sigma_px: float) -> None:
         self.state = state
         self.settings = settings
         self.R_pixel = np.eye(4) * pixel_sigma_px**2
         self.R_pixel_hat = settings.measurement_noise(self.R_pixel)
+        self.R_mean_v = MEAN_V_ROWS @ self.R_pixel @ MEAN_V_ROWS.T
+        # innovation variance of v_l - v_r, which no state moves
+        self._var_v_difference = float(self.R_pixel_hat[1, 1] + self.R_pixel_hat[3, 3])
         self.gamma = GammaPolicy(settings)
 
     def predict(
@@ -79,9 +83,9 @@ class VisualUpdater:
         R_obs, nis_v_difference = self.R_pixel, 0.0
         if pred.rectified:  # 3 rows per observation (module docstring)
             e = (z_obs[:, 1] - h_obs[:, 1]) - (z_obs[:, 3] - h_obs[:, 3])
-            nis_v_difference = float(e @ e) / (self.R_pixel_hat[1, 1] + self.R_pixel_hat[3, 3])
+            nis_v_difference = float(e @ e) / self._var_v_difference
             z_obs, h_obs, H_v, H_m = (mean_v_rows(a) for a in (z_obs, h_obs, H_v, H_m))
-            R_obs = MEAN_V_ROWS @ self.R_pixel @ MEAN_V_ROWS.T
+            R_obs = self.R_mean_v
         r = len(R_obs)  # rows per observation
         H_lm = np.zeros((k, r, k, d))  # landmark j's rows touch only its columns
         H_lm[np.arange(k), :, np.arange(k), :] = H_m
@@ -104,4 +108,4 @@ class VisualUpdater:
             self.settings, self.gamma, y, h, H, cols, R, vehicles=bounded,
             blocks=BlockRows(nv, r, d, tail),
         )  # fmt: skip
-        return replace(res, nis=res.nis + nis_v_difference) if pred.rectified else res
+        return replace(res, nis=res.nis + nis_v_difference)
