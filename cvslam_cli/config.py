@@ -385,7 +385,7 @@ class ReassociationConfig:
     chi-square gate probability, the descriptor ratio test and largest distance, the
     tracks and their shortest length in keyframes, descriptors kept per point."""
 
-    rounds: int = opt(0, lo=0)
+    rounds: int = opt(2, lo=0)
     gate_px: float = opt(4.0, lo=0.0, lo_open=True)
     gate_probability: float = opt(0.999, lo=0.5, hi=0.999999, lo_open=True)
     descriptor_ratio: float = opt(0.8, lo=0.0, hi=1.0, lo_open=True)
@@ -401,8 +401,9 @@ class RefineConfig:
     keyframes (every n-th frame of each vehicle), the pixel noise of the reprojection
     factors (0: the features' own, extract.stereo.pixel_sigma_px or the simulator's pixel
     noise), the robust kernel and its threshold (in standard deviations), the standard
-    deviation holding a ground robot's height, roll and pitch, Levenberg-Marquardt's limits,
-    and whether the landmarks' marginal covariances are computed (map std columns)."""
+    deviation holding a ground robot's height, roll and pitch, Levenberg-Marquardt's limits
+    and its elimination ordering, and whether the landmarks' marginal covariances are
+    computed (map std columns)."""
 
     source: Literal["fuse", "fuse_ekf", "fuse_single", "fuse_ekf_single"] = "fuse"
     every_nth: int = opt(1, lo=1)
@@ -412,6 +413,7 @@ class RefineConfig:
     planar_sigma: float = opt(0.001, lo=0.0, lo_open=True)
     max_iterations: int = opt(50, lo=1)
     relative_error_tol: float = opt(1e-6, lo=0.0)
+    ordering: Literal["metis", "colamd"] = "metis"
     landmark_covariances: bool = False
     reassociation: ReassociationConfig = opt(ReassociationConfig())
 

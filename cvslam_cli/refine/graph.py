@@ -1,6 +1,6 @@
 """The factor graph of a refinement (package docstring): built from a `RefineProblem`,
-solved with GTSAM's Levenberg-Marquardt (sparse multifrontal Cholesky, COLAMD ordering),
-and the marginal covariances of the solution.
+solved with GTSAM's Levenberg-Marquardt (sparse multifrontal Cholesky, METIS or COLAMD
+ordering), and the marginal covariances of the solution (`marginals.py`).
 
 Variables: x (pose, `gtsam.Pose3` = T_nav_body) per keyframe of every vehicle; with an IMU
 also v (nav-frame velocity) and b (IMU biases); with the constant-velocity model v and w
@@ -23,6 +23,7 @@ from scipy.stats import chi2
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
 from cvslam_cli.records.arrays import F64
+from cvslam_cli.refine import marginals
 from cvslam_cli.refine.motion_factors import (
     TINY_VARIANCE,
     constant_velocity_factors,
@@ -41,8 +42,6 @@ from cvslam_cli.refine.problem import (
 
 # an observation is counted an outlier at the solution beyond this (4 dof, both images)
 OUTLIER_PROBABILITY = 0.999
-# keys per joint marginal query (`marginal_covariances`)
-MARGINAL_BATCH = 100
 
 
 def X(i: int) -> int:
@@ -251,6 +250,7 @@ def solve(
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(settings.max_iterations)
     params.setRelativeErrorTol(settings.relative_error_tol)
+    params.setOrderingType(settings.ordering.upper())
     opt = gtsam.LevenbergMarquardtOptimizer(graph.graph, graph.initial, params)
     error0 = graph.graph.error(graph.initial)
     prev = error0
@@ -274,12 +274,12 @@ def result(
 ) -> RefineResult:  # fmt: skip
     """The solution with its marginal covariances (poses in cvslam's (p, Psi) convention);
     `progress(k)`: k more variables' marginals done."""
-    marginals = gtsam.Marginals(graph.graph, values)
+    factorised = marginals.factorise(graph.graph, values)
     vehicles = []
     for v, o in zip(problem.vehicles, graph.offsets, strict=True):
         K = len(v.stamps_ns)
         T = np.array([values.atPose3(X(o + k)).matrix() for k in range(K)]).reshape(K, 4, 4)
-        tangent = marginal_covariances(marginals, [X(o + k) for k in range(K)], progress=progress)
+        tangent = factorised.covariances([X(o + k) for k in range(K)], progress)
         cov = np.array([pose_cov_from_tangent(T[k], tangent[k]) for k in range(K)])
         cov = cov.reshape(K, 6, 6)
         J = v.model.pose_jacobian(v.x_first)
@@ -291,37 +291,11 @@ def result(
     p = np.array([values.atPoint3(L(j)) for j in range(n_l)]).reshape(n_l, 3)
     lm_cov = np.full((n_l, 3, 3), np.nan)
     if settings.landmark_covariances and n_l:
-        # one at a time: landmarks are not neighbours in the Bayes tree, their joint is large
-        lm_cov = marginal_covariances(
-            marginals, [L(j) for j in range(n_l)], batch=1, progress=progress
-        )
+        lm_cov = factorised.covariances([L(j) for j in range(n_l)], progress)
     return RefineResult(
         tuple(vehicles), p, lm_cov, error0, error1, iterations, dict(graph.factors),
         _outliers(problem, graph, values, settings),
     )  # fmt: skip
-
-
-def marginal_covariances(
-    marginals: gtsam.Marginals,
-    keys: list[int],
-    batch: int = MARGINAL_BATCH,
-    progress: Callable[[int], None] | None = None,
-) -> F64:
-    """(len(keys), d, d) marginal covariance of each key (all of one dimension d), from
-    joint marginals over batches of consecutive keys: one query per batch shares the Bayes
-    tree's work (on the two-UAV mission 300 poses cost 23 s in batches of 20, 11 s in
-    batches of 120; BENCHMARKS.md, "Refine (issue 21)")."""
-    out = []
-    for i in range(0, len(keys), batch):
-        chunk = keys[i : i + batch]
-        if batch == 1:
-            out.append(marginals.marginalCovariance(chunk[0]))
-        else:
-            joint = marginals.jointMarginalCovariance(gtsam.KeyVector(chunk))
-            out.extend(joint.at(k, k) for k in chunk)
-        if progress is not None:
-            progress(len(chunk))
-    return np.array(out)
 
 
 def residuals_px(problem: RefineProblem, graph: Graph, values: gtsam.Values) -> F64:

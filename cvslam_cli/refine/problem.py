@@ -11,6 +11,7 @@ from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.records.arrays import F64, I64, check_shape
 
 RobustKernel = Literal["huber", "cauchy", "none"]
+Ordering = Literal["metis", "colamd"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,7 +79,8 @@ class RefineSettings:
     """pixel_sigma_px: standard deviation of each pixel coordinate; robust kernel and its
     threshold robust_k (in standard deviations of the whitened residual); planar_sigma: the
     standard deviation (m, rad) holding a ground robot's height, roll and pitch (its 3-DOF
-    model fixes them); LM's iteration limit and relative error decrease to stop at;
+    model fixes them); LM's iteration limit and relative error decrease to stop at, and
+    the elimination ordering of its linear solves (METIS's nested dissection or COLAMD);
     landmark_covariances: also the landmarks' marginal covariances (map std columns)."""
 
     pixel_sigma_px: float = 0.5
@@ -87,6 +89,7 @@ class RefineSettings:
     planar_sigma: float = 1e-3
     max_iterations: int = 50
     relative_error_tol: float = 1e-6
+    ordering: Ordering = "metis"
     landmark_covariances: bool = False
 
 

@@ -49,6 +49,7 @@ from cvslam_cli.records.poses import PoseTable
 from cvslam_cli.refine import graph
 from cvslam_cli.refine.build import build_problem, reassociation_start
 from cvslam_cli.refine.keyframe_features import keyframe_features
+from cvslam_cli.refine.marginals import IndeterminateError
 from cvslam_cli.refine.problem import RefineProblem, RefineResult, RefineSettings
 from cvslam_cli.refine.reassociation import ReassociationSettings
 from cvslam_cli.refine.rounds import RoundsResult, RoundStats, run_rounds
@@ -122,6 +123,7 @@ def settings_of(cfg: Config, metas: Sequence[dict[str, Any]]) -> RefineSettings:
         planar_sigma=rc.planar_sigma,
         max_iterations=rc.max_iterations,
         relative_error_tol=rc.relative_error_tol,
+        ordering=rc.ordering,
         landmark_covariances=rc.landmark_covariances,
     )
 
@@ -264,14 +266,21 @@ def _lm(
         disable=None if progress else True, leave=False,
     )  # fmt: skip
 
+    start = time.perf_counter()
+
     def step(it: int, error: float) -> None:
         bar.update(1)
         bar.set_postfix(error=f"{error:.4g}")
-        log.debug("refine: iteration %d, error %.6g", it, error)
+        log.debug(
+            "refine: iteration %d, error %.6g (%.1f s)", it, error, time.perf_counter() - start
+        )
 
     with bar:
         values, e0, e1, iterations = graph.solve(g, settings, step)
-    log.info("refine: error %.6g -> %.6g in %d iterations", e0, e1, iterations)
+    log.info(
+        "refine: error %.6g -> %.6g in %d iterations (%.1f s)",
+        e0, e1, iterations, time.perf_counter() - start,
+    )  # fmt: skip
     return g, values, e0, e1, iterations
 
 
@@ -287,8 +296,11 @@ def _marginals(
         total=n, desc="refine (marginals)", unit="var", disable=None if progress else True,
         leave=False,
     )  # fmt: skip
+    start = time.perf_counter()
     with bar:
-        return graph.result(problem, g, values, settings, e0, e1, iterations, bar.update)
+        res = graph.result(problem, g, values, settings, e0, e1, iterations, bar.update)
+    log.info("refine: marginals in %.1f s", time.perf_counter() - start)
+    return res
 
 
 def reassociation_settings(cfg: Config) -> ReassociationSettings:
@@ -402,7 +414,13 @@ def run(
                 raise CvslamError(f"{layout.root}: {exc}; run `cvslam extract --force`") from None
             problem, g, values = rounds.problem, rounds.graph, rounds.values
             e0, e1, it = rounds.initial_error, rounds.final_error, rounds.iterations
-        res = _marginals(problem, g, values, settings, e0, e1, it, progress)
+        try:
+            res = _marginals(problem, g, values, settings, e0, e1, it, progress)
+        except IndeterminateError as exc:
+            raise CvslamError(
+                f"{src.path}: refine: {exc}: a keyframe or landmark nothing constrains "
+                "(refine.every_nth, refine.reassociation)"
+            ) from None
     tables = {v.name: _pose_table(v.stamps_ns, v.T_nav_body) for v in res.vehicles}
     lm = refined_map(source_map, problem, res, None if rounds is None else rounds.true_id)
     with atomic_dir(out.path) as tmp:
