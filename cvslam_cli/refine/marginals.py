@@ -52,13 +52,16 @@ class Factorisation:
     ) -> F64:
         """(len(keys), d, d) marginal covariance of each key (all of one tangent dimension
         d); `progress(k)`: k more keys done."""
+        if not keys:
+            return np.zeros((0, 0, 0))
         dims = {self.dim[k] for k in keys}
         if len(dims) > 1:
             raise ValueError("Factorisation.covariances: the keys must share one dimension")
-        d = dims.pop() if dims else 0
-        columns = np.array([self.offset[k] + i for k in keys for i in range(d)], dtype=np.int64)
+        d = dims.pop()
+        first = np.array([self.offset[k] for k in keys], dtype=np.int64)
+        columns = (first[:, None] + np.arange(d)).ravel()
         out = np.empty((len(keys), d, d))
-        per_batch = max(1, BATCH_COLUMNS // max(d, 1))
+        per_batch = max(1, BATCH_COLUMNS // d)
         for i in range(0, len(keys), per_batch):
             cols = columns[i * d : (i + per_batch) * d]
             rhs = np.zeros((len(self.scale), len(cols)))
