@@ -322,6 +322,7 @@ class FuseConfig:
     directory, whose `fuse/map.npz` is read, or a `map.npz`; empty: none)."""
 
     filter: Literal["hinf", "ekf"] = "hinf"
+    observability_constrained: bool = False
     prior_map: str = ""
     hinf: HinfConfig = opt(HinfConfig())
     motion: MotionConfig = opt(MotionConfig())

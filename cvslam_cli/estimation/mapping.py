@@ -58,6 +58,8 @@ class LandmarkBook:
         self.evicted_ns = np.full(capacity, NEVER, dtype=np.int64)  # last eviction
         self.reactivations = np.zeros(capacity, dtype=np.int64)
         self.view_sum = np.zeros((capacity, 3))
+        # gauge rows (nav frame) at eviction, when the state carries a gauge (gauge.py)
+        self.gauge_nav = np.zeros((capacity, 3, 4))
         self.slot_ids = np.zeros(0, dtype=np.int64)
 
     def _grow(self, need: int) -> None:
@@ -77,6 +79,7 @@ class LandmarkBook:
             "evicted_ns",
             "reactivations",
             "view_sum",
+            "gauge_nav",
         ):
             old = getattr(self, name)
             never = name in ("last_seen_ns", "evicted_ns")
@@ -161,12 +164,17 @@ class LandmarkBook:
         """After `JointState.remove_landmarks`: slot i now holds old slot kept[i]."""
         self.slot_ids = self.slot_ids[kept]
 
-    def evict(self, slots: I64, p_nav_m: F64, cov: F64, stamp_ns: int) -> None:
-        """Landmarks in `slots` leave the state at stamp_ns with their estimate (k, 3) and
-        marginal covariance (k, 3, 3) (call before `JointState.remove_landmarks` and
-        `keep_slots`)."""
+    def evict(
+        self, slots: I64, p_nav_m: F64, cov: F64, stamp_ns: int, gauge: F64 | None = None
+    ) -> None:
+        """Landmarks in `slots` leave the state at stamp_ns with their estimate (k, 3),
+        marginal covariance (k, 3, 3) and gauge rows (k, 3, g) if the state has a gauge
+        (call before `JointState.remove_landmarks` and `keep_slots`)."""
         self.store_estimates(slots, p_nav_m, cov)
-        self.evicted_ns[self.slot_ids[np.asarray(slots, dtype=np.int64)]] = stamp_ns
+        ids = self.slot_ids[np.asarray(slots, dtype=np.int64)]
+        self.evicted_ns[ids] = stamp_ns
+        if gauge is not None:
+            self.gauge_nav[ids, :, : gauge.shape[2]] = gauge
 
     def in_state_mask(self) -> NDArray[np.bool_]:
         """(count,) whether each landmark is in the state now."""

@@ -165,7 +165,9 @@ class NewLandmarks:
         )
         order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2), latest)
         evict = order[: max(over, bound // 10)]
-        self.book.evict(evict, st.landmarks(evict), covs[evict], run.t_ns)
+        self.book.evict(
+            evict, st.landmarks(evict), covs[evict], run.t_ns, st.landmark_gauge(evict)
+        )  # fmt: skip
         self.book.keep_slots(st.remove_landmarks(evict))
         return pick[: max(0, bound - st.n_landmarks)]
 
@@ -181,7 +183,7 @@ def _cartesian(
     P_mx = Jx @ st.P[pose.index, :]
     P_mm = P_mx[:, pose.index] @ Jx.T
     _add_diagonal_blocks(P_mm, J_pc @ cov_cam_m2 @ J_pc.T)
-    return st.add_landmarks(m, P_mm, P_mx)
+    return st.add_landmarks(m, P_mm, P_mx, N_p=st.gauge_rows(Jx, pose.index))
 
 
 def _anchored(
@@ -213,7 +215,8 @@ def _anchored(
     P_tt = P_tx[:, rows] @ F.T
     F_c = T_m @ J_pc
     _add_diagonal_blocks(P_tt, F_c @ cov_cam_m2 @ np.swapaxes(F_c, 1, 2))
-    return st.add_landmarks(theta, P_tt, P_tx, anchor_key, R_cb, t_bc), anchor_key
+    N_t = st.gauge_rows(F, rows)
+    return st.add_landmarks(theta, P_tt, P_tx, anchor_key, R_cb, t_bc, N_p=N_t), anchor_key
 
 
 def _add_diagonal_blocks(P: F64, blocks: F64) -> None:

@@ -51,6 +51,7 @@ from cvslam_cli.estimation.association import (
     view_directions,
 )
 from cvslam_cli.estimation.frame import FrameMatches
+from cvslam_cli.estimation.gauge import gauge_correlated
 from cvslam_cli.estimation.landmark_coordinates import AnchoredInverseDepth
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.settings import SlamSettings
@@ -155,30 +156,54 @@ class Reactivation:
         m = book.p_nav_m[ids]
         C = self.settings.reactivation_inflation * book.cov_nav_m2[ids]
         k = len(ids)
+        # with a gauge (gauge.py): the rows the landmark had when it left; it moves with the
+        # team's position and heading as it did then
+        N_m = None if st.N is None else book.gauge_nav[ids, :, : st.N.shape[1]]
         if st.coords.anchored:
-            slots = _anchored(st, run, m, C)
-        else:
+            slots = _anchored(st, run, m, C, N_m)
+        elif N_m is None:
             P_mm = np.zeros((3 * k, 3 * k))
             for j in range(k):
                 P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = C[j]
             slots = st.add_landmarks(m, P_mm, np.zeros((3 * k, st.n)))
+        else:
+            assert st.N is not None
+            P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C)
+            slots = st.add_landmarks(m, P_mm, P_mx, N_p=N_m.reshape(3 * k, -1))
         book.readmit(ids)
         return slots
 
 
-def _anchored(st: JointState, run: VehicleRun, m_nav_m: F64, C: F64) -> I64:
+def _anchored(st: JointState, run: VehicleRun, m_nav_m: F64, C: F64, N_m: F64 | None = None) -> I64:
     """Landmarks m (k, 3) with covariances C (k, 3, 3), independent of the state, written
     relative to a new clone of run's vehicle pose: theta = f(m, a), P_tt = T_m C T_m^T +
-    T_a P_aa T_a^T, P_tx = T_a P_ax."""
+    T_a P_aa T_a^T, P_tx = T_a P_ax; gauge rows T_m N_m + T_a N_a (N_m (k, 3, g): m's)."""
     vin = run.vin
-    key, a_rows = VehiclePose.of(st, vin).clone(st)
+    pose = VehiclePose.of(st, vin)
+    gauge = None
+    if N_m is not None and st.N is not None:  # before the clone, which makes P singular
+        P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C)
+        gauge = P_mm, np.concatenate([P_mx, P_mx[:, pose.index] @ pose.J.T], axis=1)
+    key, a_rows = pose.clone(st)
     R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
     theta, T_m, T_a = AnchoredInverseDepth().from_nav(m_nav_m, st.x[a_rows], R_cb, t_bc)
     k = len(m_nav_m)
     F = T_a.reshape(3 * k, 6)
     P_tx = F @ st.P[a_rows, :]
     P_tt = P_tx[:, a_rows] @ F.T
-    own = T_m @ C @ np.swapaxes(T_m, 1, 2)
+    N_t = st.gauge_rows(F, a_rows)
+    if gauge is None or N_m is None or N_t is None:
+        own = T_m @ C @ np.swapaxes(T_m, 1, 2)
+        for j in range(k):
+            P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += own[j]
+        return st.add_landmarks(theta, P_tt, P_tx, key, R_cb, t_bc, N_p=N_t)
+    # with a gauge: m correlated with the state's gauge error only (gauge.gauge_correlated)
+    P_mm, P_mx = gauge
+    Tm = np.zeros((3 * k, 3 * k))
     for j in range(k):
-        P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += own[j]
-    return st.add_landmarks(theta, P_tt, P_tx, key, R_cb, t_bc)
+        Tm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = T_m[j]
+    P_tx = P_tx + Tm @ P_mx
+    cross = Tm @ P_mx[:, a_rows] @ F.T
+    P_tt = P_tt + Tm @ P_mm @ Tm.T + cross + cross.T
+    N_t = N_t + Tm @ N_m.reshape(3 * k, -1)
+    return st.add_landmarks(theta, P_tt, P_tx, key, R_cb, t_bc, N_p=N_t)

@@ -48,6 +48,7 @@ class SlamSettings:
     event_merge_ns: int = 5_000_000_000
     joint_init_window_ns: int = 200_000_000
     reactivation: bool = True  # evicted landmarks brought back (reactivation.py)
+    observability_constrained: bool = False  # the gauge kept out of the updates (gauge.py)
     reactivation_inflation: float = 16.0
     prior_map_inflation: float = 16.0  # a prior map's landmarks (prior_map.py)
     reactivation_min_absence_ns: int = 20_000_000_000

@@ -148,6 +148,8 @@ class Slam:
             coordinates(
                 resolve(settings.landmark_coordinates, [v.model.kind for v in vehicles])[0]
             ),
+            # a prior map fixes the nav frame: no gauge left to keep out (gauge.py)
+            gauge=settings.observability_constrained and self.prior is None,
         )
         self.book = LandmarkBook(len(vehicles))
         self.runs = [VehicleRun.start(v, i) for i, v in enumerate(vehicles)]

@@ -465,6 +465,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         event_merge_ns=int(m.event_merge_s * 1e9),
         joint_init_window_ns=int(m.joint_init_window_s * 1e9),
         reactivation=m.reactivation,
+        observability_constrained=cfg.observability_constrained,
         reactivation_inflation=m.reactivation_inflation,
         prior_map_inflation=m.prior_map_inflation,
         reactivation_min_absence_ns=int(m.reactivation_min_absence_s * 1e9),

@@ -39,6 +39,7 @@ from cvslam_cli.estimation.filters import (
     UpdateResult,
     update_inplace,
 )
+from cvslam_cli.estimation.gauge import has_down_translation, vehicle_basis
 from cvslam_cli.estimation.landmark_coordinates import Cartesian, LandmarkCoordinates
 from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.records.arrays import F64, I64
@@ -63,9 +64,11 @@ class JointState:
         self,
         blocks: list[tuple[str, MotionModel, F64, F64]],
         coords: LandmarkCoordinates | None = None,
+        gauge: bool = False,
     ) -> None:
         """blocks: (vehicle name, motion model, x0 (n_v,), P0 (n_v, n_v)) per vehicle;
-        coords: how landmarks are written (default: Cartesian)."""
+        coords: how landmarks are written (default: Cartesian); gauge: carry the basis N of
+        the unobservable directions and constrain the updates to them (`gauge.py`)."""
         self.coords = Cartesian() if coords is None else coords
         # per landmark slot: its own rows (L, 3), its anchor (L,) (-1: none), and its anchor
         # camera's R_cam_body (L, 3, 3) and t_body_cam (L, 3); per anchor: its rows (A, 6)
@@ -96,6 +99,13 @@ class JointState:
         # contiguous (n, n) arrays (np.empty: pages the filter never uses are never touched)
         self._work = np.empty(2 * len(self._x) ** 2)
         self.x = np.concatenate([np.asarray(b[2], dtype=float) for b in blocks])
+        # the gauge basis N (n, g) with the same room to grow (None: not carried)
+        self._N: F64 | None = None
+        if gauge:
+            down = has_down_translation([b[1] for b in blocks])
+            self._N = np.zeros((len(self._x), 4 if down else 3))
+            for (_, model, x0, _), vb in zip(blocks, self.vehicles.values(), strict=True):
+                self._N[vb.index] = vehicle_basis(model, np.asarray(x0, dtype=float), down)
         # P stays exactly symmetric: every change writes both triangles alike (the in-place
         # NH-infinity update relies on it and skips the 0.5 (P + P^T) pass)
         for (_, _, _, P0), vb in zip(blocks, self.vehicles.values(), strict=True):
@@ -120,6 +130,30 @@ class JointState:
     def P(self, value: F64) -> None:
         self._P[: self._n, : self._n] = value
 
+    @property
+    def N(self) -> F64 | None:
+        """(n, g) the gauge basis (a view; `gauge.py`), None when it is not carried."""
+        return None if self._N is None else self._N[: self._n]
+
+    def gauge_rows(self, G: F64, rows: I64) -> F64 | None:
+        """Gauge rows G N[rows] of new states y = G x[rows] + w (None: no gauge)."""
+        return None if self._N is None else G @ self._N[rows]
+
+    def landmark_gauge(self, slots: I64) -> F64 | None:
+        """(k, 3, g) gauge rows of the landmarks' nav positions (None: no gauge)."""
+        if self._N is None:
+            return None
+        slots = np.asarray(slots, dtype=np.int64)
+        return self.landmarks_nav(slots)[1] @ self.N[self.landmark_columns(slots)]
+
+    def reset_gauge(self, name: str) -> None:
+        """Vehicle `name`'s gauge rows from the symmetry at its state now (its pose was set
+        anew, e.g. by localisation in the map)."""
+        if self._N is not None:
+            vb = self.vehicles[name]
+            down = self._N.shape[1] == 4
+            self._N[vb.index] = vehicle_basis(vb.model, self.x[vb.index], down)
+
     def _reserve(self, n: int) -> None:
         cap = len(self._x)
         if n <= cap:
@@ -130,6 +164,10 @@ class JointState:
         x[: self._n] = self.x
         P[: self._n, : self._n] = self.P
         self._x, self._P = x, P
+        if self._N is not None:
+            N = np.zeros((new_cap, self._N.shape[1]))
+            N[: self._n] = self._N[: self._n]
+            self._N = N
         self._work = np.empty(2 * new_cap**2)
 
     def _work_view(self) -> F64:
@@ -222,13 +260,20 @@ class JointState:
         self.P[s, :] = rows
         self.P[:, s] = rows.T
         self.P[s, s] = 0.5 * (P_vv + P_vv.T)
+        if self._N is not None:
+            self._N[s] = F @ self._N[s]
 
-    def _append(self, x_new: F64, P_new: F64, P_cross: F64) -> I64:
+    def _append(self, x_new: F64, P_new: F64, P_cross: F64, N_new: F64 | None) -> I64:
         """Append r states: mean x_new (r,), covariance P_new (r, r), cross-covariance with
-        the current state P_cross (r, n). Returns their rows (r,)."""
+        the current state P_cross (r, n), gauge rows N_new (r, g) (required when the gauge
+        is carried). Returns their rows (r,)."""
         r = len(x_new)
         n = self.n
         self._reserve(n + r)
+        if self._N is not None:
+            if N_new is None:
+                raise ValueError("JointState: new states need their gauge rows")
+            self._N[n : n + r] = N_new
         self._x[n : n + r] = x_new
         self._P[n : n + r, :n] = P_cross
         self._P[:n, n : n + r] = P_cross.T
@@ -236,15 +281,18 @@ class JointState:
         self._n = n + r
         return np.arange(n, n + r)
 
-    def add_anchor(self, x_a: F64, P_aa: F64, P_ax: F64, pinned: bool = False) -> tuple[int, I64]:
-        """Append an anchor clone: a pose (p, Psi) x_a (6,), its covariance P_aa (6, 6) and
-        cross-covariance with the current state P_ax (6, n). Returns its key (a name that
+    def add_anchor(
+        self, x_a: F64, P_aa: F64, P_ax: F64, pinned: bool = False, *, N_a: F64 | None = None
+    ) -> tuple[int, I64]:
+        """Append an anchor clone: a pose (p, Psi) x_a (6,), its covariance P_aa (6, 6),
+        cross-covariance with the current state P_ax (6, n) and gauge rows N_a (6, g) (None
+        without a gauge; `gauge_rows`). Returns its key (a name that
         stays valid while the anchor is in the state; `anchor_rows`) and its rows (6,). An
         unpinned anchor leaves with its last landmark; a pinned one (a clone of the track
         window, `tracks.py`) stays until `release_anchor`."""
         key = self._next_anchor_key
         self._next_anchor_key += 1
-        rows = self._append(np.asarray(x_a, dtype=float), P_aa, P_ax)
+        rows = self._append(np.asarray(x_a, dtype=float), P_aa, P_ax, N_a)
         self._anchor_rows = np.concatenate([self._anchor_rows, rows[None]])
         self._anchor_key = np.concatenate([self._anchor_key, [key]])
         self._anchor_pinned = np.concatenate([self._anchor_pinned, [pinned]])
@@ -274,15 +322,18 @@ class JointState:
         anchor_key: int | None = None,
         R_cam_body: F64 | None = None,
         t_body_cam: F64 | None = None,
+        *,
+        N_p: F64 | None = None,
     ) -> I64:
         """Append k landmarks: their own numbers params (k, 3) (Cartesian: m; anchored:
         theta), joint covariance P_pp (3k, 3k), cross-covariance with the current state
         P_px (3k, n); anchored coordinates: the anchor they refer to (its key) and its
-        camera's R_cam_body (3, 3) and t_body_cam (3,). Returns their slots (k,)."""
+        camera's R_cam_body (3, 3) and t_body_cam (3,); gauge rows N_p (3k, g) (required
+        when the state carries a gauge; `gauge_rows`). Returns their slots (k,)."""
         k = len(params)
         index = None if anchor_key is None else self._anchor_index(anchor_key)
         anchor = -1 if index is None else index
-        rows = self._append(np.asarray(params, dtype=float).reshape(-1), P_pp, P_px)
+        rows = self._append(np.asarray(params, dtype=float).reshape(-1), P_pp, P_px, N_p)
         R = np.eye(3) if R_cam_body is None else np.asarray(R_cam_body, dtype=float)
         t = np.zeros(3) if t_body_cam is None else np.asarray(t_body_cam, dtype=float)
         self._own_rows = np.concatenate([self._own_rows, rows.reshape(k, 3)])
@@ -309,6 +360,8 @@ class JointState:
         new_row = np.cumsum(keep_rows) - 1  # old row -> new row, for the rows kept
         new_anchor = np.cumsum(used) - 1
         x, P = self.x[idx], self.P[np.ix_(idx, idx)]
+        if self._N is not None:
+            self._N[: len(idx)] = self._N[idx]
         self._n = len(idx)
         self.x, self.P = x, P
         anchor_of = self._anchor_of[kept]

@@ -160,6 +160,7 @@ class UnknownPoseLocaliser:
         self._pending.pop(vin.name, None)
         prior = VehiclePose.of(st, vin)
         st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
+        st.reset_gauge(vin.name)
         from_prior = found.landmark_rows >= n_state
         if self.prior is not None:
             protected = np.flatnonzero(np.isin(book.slot_ids, ids[~from_prior]))

@@ -23,6 +23,7 @@ import numpy as np
 
 from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
 from cvslam_cli.estimation.filters import BlockRows, FilterSettings, GammaPolicy, UpdateResult
+from cvslam_cli.estimation.gauge import constrain
 from cvslam_cli.estimation.observation import MEAN_V_ROWS, mean_v_rows
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
@@ -80,6 +81,10 @@ class VisualUpdater:
         lm_cols = self.state.landmark_columns(pred.slots[rows])  # (k, d)
         d = lm_cols.shape[1]
         z_obs, h_obs, H_v, H_m = z, pred.z[rows], pred.H_v[rows], pred.H_m[rows]
+        if self.state.N is not None:  # observability constraint, one observation at a time
+            H_v, H_m = self._constrained(v_idx, lm_cols, H_v, H_m)
+            if extra is not None:
+                extra = replace(extra, H=constrain(extra.H, self.state.N[extra.cols]))
         R_obs, nis_v_difference = self.R_pixel, 0.0
         if pred.rectified:  # 3 rows per observation (module docstring)
             e = (z_obs[:, 1] - h_obs[:, 1]) - (z_obs[:, 3] - h_obs[:, 3])
@@ -109,3 +114,14 @@ class VisualUpdater:
             blocks=BlockRows(nv, r, d, tail),
         )  # fmt: skip
         return replace(res, nis=res.nis + nis_v_difference)
+
+    def _constrained(self, v_idx: I64, lm_cols: I64, H_v: F64, H_m: F64) -> tuple[F64, F64]:
+        """H_v (k, r, n_v) and H_m (k, r, d) of k observations, each modified over its own
+        columns (the vehicle's and its landmark's) so that it sees nothing of the gauge
+        (`gauge.constrain`)."""
+        N = self.state.N
+        assert N is not None
+        k, nv = len(lm_cols), len(v_idx)
+        N_j = np.concatenate([np.broadcast_to(N[v_idx], (k, nv, N.shape[1])), N[lm_cols]], axis=1)
+        H_j = constrain(np.concatenate([H_v, H_m], axis=2), N_j)
+        return H_j[:, :, :nv], H_j[:, :, nv:]

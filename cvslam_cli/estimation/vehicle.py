@@ -120,5 +120,5 @@ class VehiclePose:
         P_ax = self.J @ state.P[self.index, :]
         return state.add_anchor(
             np.concatenate([self.p_nav_m, self.euler_rad]), P_ax[:, self.index] @ self.J.T,
-            P_ax, pinned=pinned,
+            P_ax, pinned, N_a=state.gauge_rows(self.J, self.index),
         )  # fmt: skip

@@ -23,13 +23,14 @@ their correlation with the clones.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from cvslam_cli.estimation.association import spread_order
 from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy
 from cvslam_cli.estimation.frame import FrameMatches, WindowOutcome
+from cvslam_cli.estimation.gauge import constrain
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.settings import WindowSettings
 from cvslam_cli.estimation.state import JointState
@@ -248,6 +249,8 @@ class SlidingWindow:
         """Apply the pending rows alone (a frame without a landmark update, the run's end)."""
         rows = self.pending_rows()
         if rows is not None:
+            if self.state.N is not None:  # the observability constraint (gauge.py)
+                rows = replace(rows, H=constrain(rows.H, self.state.N[rows.cols]))
             self.state.update(
                 self.filter, self.gamma, rows.r, np.zeros(len(rows.r)), rows.H, rows.cols,
                 rows.R, vehicles=bounded,

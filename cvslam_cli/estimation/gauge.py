@@ -1,0 +1,110 @@
+"""The gauge of the joint state and the observability-constrained update (extension beyond
+the paper: Huang, Mourikis and Roumeliotis 2010, "Observability-based rules for designing
+consistent EKF SLAM estimators"; Hesch et al. 2014 for visual-inertial navigation).
+
+No measurement of the filter sees where the whole team is or which way it faces: moving
+every vehicle and every landmark by a translation t and turning them all by an angle about
+the nav frame's down axis leaves every image, every IMU sample and every odometry reading as
+it was. In the linearised filter these are the columns of a basis N (n, g) of the joint
+state, which the measurements must never learn about: H N = 0. The exact system has this
+property; the EKF does not, because it evaluates each Jacobian at a different estimate (the
+transition at the updated state, each update at the state of its time), so the directions
+the updates leave alone drift from the ones propagation carried, and every frame adds a
+little information along them. It shows as a yaw standard deviation falling from the
+initial 5 mrad to 1 mrad within a second of a UAV's flight although nothing measures yaw,
+and a position standard deviation flat over a 145 m drive (BENCHMARKS.md, "Fuse:
+consistency (issue 15)", ninth step): the covariance claims an absolute pose the sensors
+never gave, and the position NEES grows with the distance travelled.
+
+The cure kept here (`fuse.observability_constrained`): the state carries N (`JointState`),
+- started at each vehicle's initial state from the symmetry (`vehicle_basis`): the
+  position rows move with t, the nav-frame position and velocity rows turn with the yaw
+  angle (d(Rz p)/d angle = (-p_e, p_n, 0)), the yaw row moves with it, body-frame states and
+  biases do not move;
+- propagated with the vehicle's transition, N_v <- F N_v (`JointState.predict`);
+- extended by the chain rule for every state added: a new state y = G x_rows + w has rows
+  G N[rows] (a clone copies its vehicle's rows; an anchored inverse depth relative to a clone
+  of the pose it was measured from has zero rows; a landmark put back independently of the
+  state, re-activation's, has zero rows in nav coordinates: an absolute reference that the
+  constraint keeps from telling the team where it is);
+- and every update's Jacobian modified as little as possible to meet it, one observation at
+  a time over the columns it touches (`constrain`): H* = H - (H N) (N^T N)^+ N^T. Each row
+  block keeps its own columns, so the update's structure (`filters.BlockRows`) holds.
+Then the information the updates add is exactly zero along N at all times, and the
+uncertainty of the team's position and heading only grows from the initial prior, as in
+the exact system.
+
+The down translation is in the gauge only when every vehicle has a height state: a ground
+robot (`OdometryModel`) drives at a known height and so pins the map's. A prior map
+(`prior_map.py`) fixes the nav frame itself: there the gauge is observable and the
+constraint is off.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+
+from cvslam_cli.estimation.motion.models import MotionModel
+from cvslam_cli.records.arrays import F64
+
+# Columns of N: translations north, east, down, then the turn about the down axis.
+TRANSLATIONS = ("p_n", "p_e", "p_d")
+YAW_COLUMN = 3
+# Relative ridge on P when the gauge information N^T P^-1 N is computed (`gauge_correlated`).
+RIDGE = 1e-12
+
+
+def has_down_translation(models: list[MotionModel]) -> bool:
+    """Whether a shift of everything along down is unobservable: every vehicle has p_d."""
+    return all("p_d" in m.state_names for m in models)
+
+
+def vehicle_basis(model: MotionModel, x: F64, down: bool) -> F64:
+    """N's rows (n_v, 3 or 4) for a vehicle of `model` at state x (module docstring); the
+    down column only when `down`."""
+    names = model.state_names
+    N = np.zeros((model.n, 4))
+    index = {name: i for i, name in enumerate(names)}
+    for axis, name in enumerate(TRANSLATIONS):
+        if name in index:
+            N[index[name], axis] = 1.0
+    for n_name, e_name in (("p_n", "p_e"), ("v_n", "v_e")):  # nav-frame vectors turn
+        if n_name in index and e_name in index:
+            i, j = index[n_name], index[e_name]
+            N[i, YAW_COLUMN] = -x[j]
+            N[j, YAW_COLUMN] = x[i]
+    if "yaw" in index:
+        N[index["yaw"], YAW_COLUMN] = 1.0
+    return N if down else N[:, [0, 1, YAW_COLUMN]]
+
+
+def constrain(H: F64, N: F64) -> F64:
+    """H* (..., m, c) = H - (H N) (N^T N)^+ N^T: the smallest change (Frobenius) to the rows
+    H (..., m, c) over columns whose gauge rows are N (..., c, g) after which H* N = 0."""
+    G = np.swapaxes(N, -1, -2) @ N
+    return H - (H @ N) @ np.linalg.pinv(G, hermitian=True) @ np.swapaxes(N, -1, -2)
+
+
+def gauge_correlated(P: F64, N: F64, N_m: F64, C: F64) -> tuple[F64, F64]:
+    """A point put back into the state with marginals C (k, 3, 3) and gauge rows N_m
+    (k, 3, g) that adds no information about the gauge: m = m_true + N_m g + w, g the
+    state's own gauge error (its estimate from the state error, weighted by the
+    information: G = N_m A^-1 N^T P^-1 with A = N^T P^-1 N, the gauge information the
+    prior gave) and w independent. Returns P_mm (3k, 3k) = N_m A^-1 N_m^T + blockdiag(W)
+    with W = C - (N_m A^-1 N_m^T)_jj (clipped to be positive semi-definite) and the
+    cross-covariance P_mx = G P = N_m A^-1 N^T (3k, n)."""
+    k, g = len(N_m), N.shape[1]
+    # P is singular where a clone copies its vehicle's pose exactly, but N has no part in
+    # that null space (a clone's rows copy its vehicle's): a tiny ridge leaves A as it is
+    ridge = RIDGE * float(np.max(np.diagonal(P)))
+    A = N.T @ scipy.linalg.solve(P + ridge * np.eye(len(P)), N, assume_a="pos")
+    S = np.linalg.inv(0.5 * (A + A.T))
+    Nm = N_m.reshape(3 * k, g)
+    P_mx = Nm @ S @ N.T
+    P_mm = Nm @ S @ Nm.T
+    for j in range(k):
+        b = slice(3 * j, 3 * j + 3)
+        w, V = np.linalg.eigh(C[j] - P_mm[b, b])
+        P_mm[b, b] += (V * np.maximum(w, 0.0)) @ V.T
+    return 0.5 * (P_mm + P_mm.T), P_mx
