@@ -10,11 +10,14 @@ state, which the measurements must never learn about: H N = 0. The exact system 
 property; the EKF does not, because it evaluates each Jacobian at a different estimate (the
 transition at the updated state, each update at the state of its time), so the directions
 the updates leave alone drift from the ones propagation carried, and every frame adds a
-little information along them. It shows as a yaw standard deviation falling from the
-initial 5 mrad to 1 mrad within a second of a UAV's flight although nothing measures yaw,
-and a position standard deviation flat over a 145 m drive (BENCHMARKS.md, "Fuse:
-consistency (issue 15)", ninth step): the covariance claims an absolute pose the sensors
-never gave, and the position NEES grows with the distance travelled.
+little information along them. Re-activation adds much more: an evicted landmark put back
+with its archived marginal and no correlation reads as an absolute reference, and many of
+them add up (on `uav2_paper` seed 5, 100x the translation information the initial prior
+gave). It shows as a position standard deviation flat over a 145 m drive (BENCHMARKS.md,
+"Fuse: consistency (issue 15)", ninth step): the covariance claims an absolute position the
+sensors never gave, and the position NEES grows with the distance travelled. (The heading
+is not in this list by itself: two vehicles whose initial positions are known to 0.1 m and
+lie 75 m apart do fix the team's heading to a few mrad once they share landmarks.)
 
 The cure kept here (`fuse.observability_constrained`): the state carries N (`JointState`),
 - started at each vehicle's initial state from the symmetry (`vehicle_basis`): the
@@ -24,13 +27,14 @@ The cure kept here (`fuse.observability_constrained`): the state carries N (`Joi
 - propagated with the vehicle's transition, N_v <- F N_v (`JointState.predict`);
 - extended by the chain rule for every state added: a new state y = G x_rows + w has rows
   G N[rows] (a clone copies its vehicle's rows; an anchored inverse depth relative to a clone
-  of the pose it was measured from has zero rows; a landmark put back independently of the
-  state, re-activation's, has zero rows in nav coordinates: an absolute reference that the
-  constraint keeps from telling the team where it is);
+  of the pose it was measured from has zero rows);
+- kept for the landmarks that leave the state (their nav rows, in the landmark book), and
+  given back to them when re-activation puts them back, with a cross-covariance with the
+  state's gauge error only (`gauge_correlated`), so that they add no information about it;
 - and every update's Jacobian modified as little as possible to meet it, one observation at
   a time over the columns it touches (`constrain`): H* = H - (H N) (N^T N)^+ N^T. Each row
   block keeps its own columns, so the update's structure (`filters.BlockRows`) holds.
-Then the information the updates add is exactly zero along N at all times, and the
+Then neither the updates nor the landmarks put back add information along N, and the
 uncertainty of the team's position and heading only grows from the initial prior, as in
 the exact system.
 

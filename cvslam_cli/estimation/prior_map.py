@@ -184,9 +184,7 @@ class PriorLandmarks(Reactivation):
             P_ll = np.tile(st.P[np.ix_(b_rows, b_rows)], (k, k))
             for j in range(k):
                 P_ll[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += E[j]
-            G = -np.tile(np.eye(3), (k, 1))
-            N_l = st.gauge_rows(G, b_rows)
-            slots = st.add_landmarks(l_nav, P_ll, G @ st.P[b_rows, :], N_p=N_l)
+            slots = st.add_landmarks(l_nav, P_ll, -np.tile(st.P[b_rows, :], (k, 1)))
         book.readmit(ids)
         return slots
 
@@ -214,5 +212,4 @@ def _anchored_on_offset(st: JointState, run: VehicleRun, l_nav_m: F64, E: F64, b
     own = T_m @ E @ np.swapaxes(T_m, 1, 2)
     for j in range(k):
         P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += own[j]
-    N_t = st.gauge_rows(G, rows)
-    return st.add_landmarks(theta, 0.5 * (P_tt + P_tt.T), P_tx, key, R_cb, t_bc, N_p=N_t)
+    return st.add_landmarks(theta, 0.5 * (P_tt + P_tt.T), P_tx, key, R_cb, t_bc)

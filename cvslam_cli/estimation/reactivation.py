@@ -29,7 +29,11 @@ shares with the state twice and make the filter overconfident. It is re-inserted
 cross-covariance but its marginal inflated by `reactivation_inflation` k >= 1, i.e. a
 covariance k C: the covariance-intersection bound [[P / w, 0], [0, C / (1 - w)]] with the
 state's weight w -> 1 taken on the landmark alone (the state, whose correlations are
-known, is left as it is), k = 1 / (1 - w). The NEES of the Monte Carlo
+known, is left as it is), k = 1 / (1 - w). With the observability constraint
+(`fuse.observability_constrained`, `gauge.py`) the landmark comes back with the gauge rows
+it had when it left and correlated with the state's gauge error only
+(`gauge.gauge_correlated`): its inflated marginal as before, and nothing about where the
+team is or which way it faces. The NEES of the Monte Carlo
 (`tests/estimation/test_reactivation.py`, BENCHMARKS.md "Fuse: re-activation") is the check
 that this is conservative enough. Anchored inverse-depth landmarks are written relative to a
 fresh clone of the vehicle's pose (`JointState.add_anchor`): theta = f(m, anchor) with m
@@ -183,7 +187,7 @@ def _anchored(st: JointState, run: VehicleRun, m_nav_m: F64, C: F64, N_m: F64 | 
     gauge = None
     if N_m is not None and st.N is not None:  # before the clone, which makes P singular
         P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C)
-        gauge = P_mm, np.concatenate([P_mx, P_mx[:, pose.index] @ pose.J.T], axis=1)
+        gauge = P_mm, np.concatenate([P_mx, P_mx[:, pose.index] @ pose.J.T], axis=1), N_m
     key, a_rows = pose.clone(st)
     R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]
     theta, T_m, T_a = AnchoredInverseDepth().from_nav(m_nav_m, st.x[a_rows], R_cb, t_bc)
@@ -192,13 +196,13 @@ def _anchored(st: JointState, run: VehicleRun, m_nav_m: F64, C: F64, N_m: F64 | 
     P_tx = F @ st.P[a_rows, :]
     P_tt = P_tx[:, a_rows] @ F.T
     N_t = st.gauge_rows(F, a_rows)
-    if gauge is None or N_m is None or N_t is None:
+    if gauge is None or N_t is None:
         own = T_m @ C @ np.swapaxes(T_m, 1, 2)
         for j in range(k):
             P_tt[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += own[j]
         return st.add_landmarks(theta, P_tt, P_tx, key, R_cb, t_bc, N_p=N_t)
     # with a gauge: m correlated with the state's gauge error only (gauge.gauge_correlated)
-    P_mm, P_mx = gauge
+    P_mm, P_mx, N_m = gauge
     Tm = np.zeros((3 * k, 3 * k))
     for j in range(k):
         Tm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = T_m[j]

@@ -83,8 +83,6 @@ class VisualUpdater:
         z_obs, h_obs, H_v, H_m = z, pred.z[rows], pred.H_v[rows], pred.H_m[rows]
         if self.state.N is not None:  # observability constraint, one observation at a time
             H_v, H_m = self._constrained(v_idx, lm_cols, H_v, H_m)
-            if extra is not None:
-                extra = replace(extra, H=constrain(extra.H, self.state.N[extra.cols]))
         R_obs, nis_v_difference = self.R_pixel, 0.0
         if pred.rectified:  # 3 rows per observation (module docstring)
             e = (z_obs[:, 1] - h_obs[:, 1]) - (z_obs[:, 3] - h_obs[:, 3])

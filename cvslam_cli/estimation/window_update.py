@@ -23,7 +23,7 @@ their correlation with the clones.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -222,7 +222,7 @@ class SlidingWindow:
 
     def pending_rows(self) -> ExtraRows | None:
         """The pending rows as one block over the clones' present state columns (None if
-        there are none)."""
+        there are none), blind to the gauge when the state carries one."""
         if not self._pending:
             return None
         cols = [
@@ -236,7 +236,11 @@ class SlidingWindow:
             i, j = i + len(tr.r), j + len(c)
         sigma2 = float(self.R_pixel[0, 0])
         r = np.concatenate([tr.r for tr in self._pending])
-        return ExtraRows(r, H, np.concatenate(cols), sigma2 * np.eye(len(r)))
+        cols = np.concatenate(cols)
+        N = self.state.N
+        if N is not None:  # the observability constraint (gauge.py)
+            H = constrain(H, N[cols])
+        return ExtraRows(r, H, cols, sigma2 * np.eye(len(r)))
 
     def settle(self) -> None:
         """The pending rows have been applied: forget them and release the clones that left."""
@@ -249,8 +253,6 @@ class SlidingWindow:
         """Apply the pending rows alone (a frame without a landmark update, the run's end)."""
         rows = self.pending_rows()
         if rows is not None:
-            if self.state.N is not None:  # the observability constraint (gauge.py)
-                rows = replace(rows, H=constrain(rows.H, self.state.N[rows.cols]))
             self.state.update(
                 self.filter, self.gamma, rows.r, np.zeros(len(rows.r)), rows.H, rows.cols,
                 rows.R, vehicles=bounded,
