@@ -292,6 +292,7 @@ class MapConfig:
     reactivation: bool = True
     reactivation_inflation: float = opt(16.0, lo=1.0)
     prior_map_inflation: float = opt(16.0, lo=1.0)
+    refined_prior_map_inflation: float = opt(1.0, lo=1.0)
     reactivation_min_absence_s: float = opt(20.0, lo=0.0)
     reactivation_min_landmarks: int = opt(3, lo=1)
     max_reactivated_per_frame: int = opt(15, lo=1)
@@ -415,7 +416,7 @@ class RefineConfig:
     max_iterations: int = opt(50, lo=1)
     relative_error_tol: float = opt(1e-6, lo=0.0)
     ordering: Literal["metis", "colamd"] = "metis"
-    landmark_covariances: bool = False
+    landmark_covariances: bool = True
     reassociation: ReassociationConfig = opt(ReassociationConfig())
 
 

@@ -23,7 +23,8 @@ sees them:
   marginals allow, the per-axis minimum of their variances, inflated like them), added to
   the joint state as a static block (`OFFSET_BLOCK`, no motion, never bounded). A prior
   landmark enters as l = m_prior - b with its own error the archived marginal inflated by
-  `prior_map_inflation` (`PriorLandmarks.reinsert`): correlated with b, and through b
+  `prior_map_inflation`, or `refined_prior_map_inflation` for a map `cvslam refine` made
+  (`prior_inflation`, `PriorLandmarks.reinsert`): correlated with b, and through b
   with every vehicle and landmark the map has touched, as the model says; the vehicles'
   updates with prior landmarks then estimate b (`run.yaml`: the offset found);
 - a vehicle whose pose is unknown (`fuse.initial.unknown`) is localised in the state's and
@@ -68,16 +69,26 @@ class _Static:
     kind: str = "static"
 
 
+def prior_inflation(settings: SlamSettings, archive: LandmarkArchive) -> float:
+    """The inflation of a prior map's marginals: `refined_prior_map_inflation` for a map a
+    batch solution made (`cvslam refine`: exact marginals of one joint solution), else
+    `prior_map_inflation` (a filter's map, whose marginals lost their correlations at every
+    eviction). Chosen by NEES: BENCHMARKS.md "Fuse: multi-session (issue 20)"."""
+    if archive.estimator == "batch":
+        return settings.refined_prior_map_inflation
+    return settings.prior_map_inflation
+
+
 class PriorMap:
     """The prior map of a run: `archive` (N landmarks), which become the book's ids 0..N-1
     (`seed`); `session` the number of this run's landmarks; `inflation` of the landmarks'
-    marginals (`prior_map_inflation`)."""
+    marginals (`prior_inflation`)."""
 
-    def __init__(self, archive: LandmarkArchive, inflation: float) -> None:
+    def __init__(self, archive: LandmarkArchive, settings: SlamSettings) -> None:
         self.archive = archive
         self.n = len(archive)
         self.session = int(archive.session.max()) + 1 if self.n else 1
-        self.inflation = inflation
+        self.inflation = prior_inflation(settings, archive)
 
     def offset_covariance(self) -> F64:
         """B (3, 3): the per-axis minimum of the archived landmarks' variances (the common
@@ -150,8 +161,7 @@ class PriorLandmarks(Reactivation):
         R_pixel_hat: F64,
         prior: PriorMap,
     ) -> None:
-        k = settings.prior_map_inflation
-        inflated = dataclasses.replace(settings, reactivation_inflation=k)
+        inflated = dataclasses.replace(settings, reactivation_inflation=prior.inflation)
         super().__init__(state, book, inflated, R_pixel_hat)
         self.prior = prior
 

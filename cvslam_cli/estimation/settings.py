@@ -51,6 +51,7 @@ class SlamSettings:
     observability_constrained: bool = False  # the gauge kept out of the updates (gauge.py)
     reactivation_inflation: float = 16.0
     prior_map_inflation: float = 16.0  # a prior map's landmarks (prior_map.py)
+    refined_prior_map_inflation: float = 1.0  # ... when cvslam refine made the map
     reactivation_min_absence_ns: int = 20_000_000_000
     reactivation_min_landmarks: int = 3
     max_reactivated_per_frame: int = 15

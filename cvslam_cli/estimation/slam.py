@@ -141,7 +141,7 @@ class Slam:
         self.vehicles = vehicles
         self.names = [v.name for v in vehicles]
         # a map from an earlier run (prior_map.py): its common offset is a block of the state
-        self.prior = None if prior is None else PriorMap(prior, settings.prior_map_inflation)
+        self.prior = None if prior is None else PriorMap(prior, settings)
         self.state = JointState(
             [(v.name, v.model, v.x0, v.P0) for v in vehicles]
             + ([self.prior.offset_block()] if self.prior is not None else []),

@@ -468,6 +468,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         observability_constrained=cfg.observability_constrained,
         reactivation_inflation=m.reactivation_inflation,
         prior_map_inflation=m.prior_map_inflation,
+        refined_prior_map_inflation=m.refined_prior_map_inflation,
         reactivation_min_absence_ns=int(m.reactivation_min_absence_s * 1e9),
         reactivation_min_landmarks=m.reactivation_min_landmarks,
         max_reactivated_per_frame=m.max_reactivated_per_frame,

@@ -11,7 +11,7 @@ import numpy as np
 
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.io.npz import load_versioned_npz, save_npz
-from cvslam_cli.io.run_layout import RunLayout
+from cvslam_cli.io.run_layout import FuseFolder, RunLayout
 from cvslam_cli.records.landmark_archive import LandmarkArchive
 
 MAP_FORMAT = "cvslam.map"
@@ -48,6 +48,7 @@ def save_map(path: Path, archive: LandmarkArchive) -> None:
             "nav_frame": np.array(NAV_FRAME),
             "vehicles": np.array(archive.vehicles, dtype=str),
             "coordinates": np.array(archive.coordinates),
+            "estimator": np.array(archive.estimator),
             **arrays,
         },
     )
@@ -63,6 +64,8 @@ def load_map(path: Path) -> LandmarkArchive:
         return LandmarkArchive(
             vehicles=tuple(str(v) for v in data["vehicles"].reshape(-1)),
             coordinates=str(data["coordinates"]),
+            # a file without it was written by `cvslam fuse` before refine wrote map files
+            estimator=str(data["estimator"]) if "estimator" in data else "filter",
             **{name: data[name] for name in _ARRAYS if name in data or name not in _OPTIONAL},
         )
     except (KeyError, ValueError) as exc:
@@ -70,15 +73,19 @@ def load_map(path: Path) -> LandmarkArchive:
 
 
 def prior_map_path(spec: str) -> Path:
-    """The map file `fuse.prior_map` names: a run directory's `fuse/map.npz`, or a map
-    file itself. `CvslamError` naming the key and the path when neither exists."""
+    """The map file `fuse.prior_map` names: a run directory's `fuse/map.npz`, the
+    `map.npz` of a fuse folder (`RUN/fuse_refined`, ...), or a map file itself.
+    `CvslamError` naming the key and the path when none exists."""
     path = Path(spec).expanduser()
+    if path.is_dir() and FuseFolder(path).map_npz.is_file():
+        return FuseFolder(path).map_npz
     if path.is_dir():
         found = RunLayout(path).fuse().map_npz
         if not found.is_file():
             raise CvslamError(
                 f"fuse.prior_map: {path} is a folder without {found.relative_to(path)} (expected "
-                f"a run directory fused with this cvslam, `cvslam fuse {path}`, or a map.npz)"
+                f"a run directory fused with this cvslam, `cvslam fuse {path}`, a fuse folder "
+                "holding a map.npz, or a map.npz)"
             )
         return found
     if not path.exists():

@@ -23,6 +23,8 @@ from cvslam_cli.records.arrays import F64, I64, U8, BoolArray, check_shape
 from cvslam_cli.records.features import DESCRIPTOR_SIZE
 from cvslam_cli.records.landmarks import LandmarkMap
 
+ESTIMATORS = ("filter", "batch")
+"""What may have made an archive's estimates (`LandmarkArchive.estimator`)."""
 NEVER_NS = int(np.iinfo(np.int64).min)
 """A stamp meaning "never" (`last_seen_ns` of a vehicle that did not see the landmark,
 `evicted_ns` of one never evicted)."""
@@ -49,7 +51,11 @@ class LandmarkArchive:
       "inverse_depth"; the stored Gaussians are nav-frame either way);
     - `session` (N,) int64: the mapping session that created the landmark (0: the first;
       a run started from a prior map, `estimation/prior_map.py`, keeps the prior's and
-      numbers its own landmarks one more than the prior's largest). None: all 0.
+      numbers its own landmarks one more than the prior's largest). None: all 0;
+    - `estimator`: what made the estimates: "filter" (`cvslam fuse`: each covariance the
+      marginal when the landmark was last evicted or at the end, the correlations dropped
+      by a bounded state, module docstring) or "batch" (`cvslam refine`: the marginals of
+      one joint solution over every pose and landmark at its end).
     """
 
     vehicles: tuple[str, ...]
@@ -67,6 +73,7 @@ class LandmarkArchive:
     reactivations: I64
     coordinates: str
     session: I64 | None = None
+    estimator: str = "filter"
 
     def __post_init__(self) -> None:
         vehicles = tuple(self.vehicles)
@@ -98,6 +105,10 @@ class LandmarkArchive:
             raise ValueError("LandmarkArchive.landmark_id: ids must be unique")
         if not isinstance(self.coordinates, str):
             raise ValueError("LandmarkArchive.coordinates: expected a string")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(
+                f"LandmarkArchive.estimator: {self.estimator!r}, expected one of {ESTIMATORS}"
+            )
 
     def __len__(self) -> int:
         return len(self.landmark_id)

@@ -275,11 +275,20 @@ def result(
     """The solution with its marginal covariances (poses in cvslam's (p, Psi) convention);
     `progress(k)`: k more variables' marginals done."""
     factorised = marginals.factorise(graph.graph, values)
+    n_l = len(problem.landmark_id)
+    pose_keys = [
+        X(o + k) for v, o in zip(problem.vehicles, graph.offsets, strict=True)
+        for k in range(len(v.stamps_ns))
+    ]  # fmt: skip
+    landmark_keys = [L(j) for j in range(n_l)] if settings.landmark_covariances else []
+    tangents, lm_cov = factorised.poses_and_landmarks(pose_keys, landmark_keys, progress)
     vehicles = []
+    first = 0
     for v, o in zip(problem.vehicles, graph.offsets, strict=True):
         K = len(v.stamps_ns)
         T = np.array([values.atPose3(X(o + k)).matrix() for k in range(K)]).reshape(K, 4, 4)
-        tangent = factorised.covariances([X(o + k) for k in range(K)], progress)
+        tangent = tangents[first : first + K]
+        first += K
         cov = np.array([pose_cov_from_tangent(T[k], tangent[k]) for k in range(K)])
         cov = cov.reshape(K, 6, 6)
         J = v.model.pose_jacobian(v.x_first)
@@ -287,11 +296,9 @@ def result(
         cov[:, absent, :] = 0.0
         cov[:, :, absent] = 0.0
         vehicles.append(RefinedVehicle(v.name, v.stamps_ns.copy(), T, cov))
-    n_l = len(problem.landmark_id)
     p = np.array([values.atPoint3(L(j)) for j in range(n_l)]).reshape(n_l, 3)
-    lm_cov = np.full((n_l, 3, 3), np.nan)
-    if settings.landmark_covariances and n_l:
-        lm_cov = factorised.covariances([L(j) for j in range(n_l)], progress)
+    if not landmark_keys:
+        lm_cov = np.full((n_l, 3, 3), np.nan)
     return RefineResult(
         tuple(vehicles), p, lm_cov, error0, error1, iterations, dict(graph.factors),
         _outliers(problem, graph, values, settings),

@@ -90,7 +90,7 @@ class RefineSettings:
     max_iterations: int = 50
     relative_error_tol: float = 1e-6
     ordering: Ordering = "metis"
-    landmark_covariances: bool = False
+    landmark_covariances: bool = True
 
 
 @dataclass(frozen=True, eq=False)

@@ -16,7 +16,7 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.arrays import F64, I64, U8
 from cvslam_cli.refine import graph
 from cvslam_cli.refine.keyframe_features import KeyframeFeatures
 from cvslam_cli.refine.problem import RefineProblem, RefineSettings
@@ -56,8 +56,9 @@ class RoundStats:
 @dataclass(frozen=True, eq=False)
 class RoundsResult:
     """The last solve (problem, graph, solution, first round's initial error, last error,
-    iterations in all), the simulator id of each of its landmarks (L,), the stats of each
-    solve (the final check's last), and the observations the final check removed."""
+    iterations in all), the simulator id and a descriptor (the first it was matched with)
+    of each of its landmarks, (L,) and (L, D), the stats of each solve (the final check's
+    last), and the observations the final check removed."""
 
     problem: RefineProblem
     graph: graph.Graph
@@ -66,6 +67,7 @@ class RoundsResult:
     final_error: float
     iterations: int
     true_id: I64
+    descriptor: U8
     rounds: tuple[RoundStats, ...]
     removed: int
 
@@ -140,8 +142,9 @@ def run_rounds(
         stats.append(_stats(problem, pts, rows, obs.take(keep), radius, it, e1, scale))
         log(f"refine: final check: {removed} observations beyond the gate removed; error {e1:.6g}")
     return RoundsResult(
-        problem, g, values, e_first, e1, iterations, pts.true_id[rows.points], tuple(stats), removed
-    )
+        problem, g, values, e_first, e1, iterations, pts.true_id[rows.points],
+        pts.desc[rows.points, 0], tuple(stats), removed,
+    )  # fmt: skip
 
 
 def _stats(

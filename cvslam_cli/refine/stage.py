@@ -7,7 +7,8 @@ folder's formats (docs/fuse_outputs.md), written to a temporary folder renamed w
 complete: per vehicle `<v>.tum` (the keyframes' refined poses), `<v>_pose_cov.npz` (their
 marginal covariances), `<v>_deadreckoning.tum` (the source's, for the same comparisons);
 `map.csv`, `map.ply` (every landmark of the source map: the refined ones moved, with their
-marginal standard deviations), `result.mcap`.
+marginal standard deviations), `map.npz` (the source's map file refined likewise, with the
+tracks' new points: `map_archive.py`; a later run's prior map), `result.mcap`.
 """
 
 from __future__ import annotations
@@ -38,17 +39,19 @@ from cvslam_cli.io.fuse_files import (
     write_map_ply,
 )
 from cvslam_cli.io.logs import all_log_paths, open_logs, require_logs, with_run_bindings
-from cvslam_cli.io.map_file import load_map
+from cvslam_cli.io.map_file import load_map, save_map
 from cvslam_cli.io.observations_file import load_observations
 from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, refined_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum, write_tum
+from cvslam_cli.records.landmark_archive import LandmarkArchive
 from cvslam_cli.records.landmarks import LandmarkMap
 from cvslam_cli.records.poses import PoseTable
 from cvslam_cli.refine import graph
 from cvslam_cli.refine.build import build_problem, reassociation_start
 from cvslam_cli.refine.keyframe_features import keyframe_features
+from cvslam_cli.refine.map_archive import refined_archive
 from cvslam_cli.refine.marginals import IndeterminateError
 from cvslam_cli.refine.problem import RefineProblem, RefineResult, RefineSettings
 from cvslam_cli.refine.reassociation import ReassociationSettings
@@ -219,9 +222,12 @@ def _write(
     tables: dict[str, PoseTable],
     res: RefineResult,
     lm: LandmarkMap,
+    archive: LandmarkArchive | None,
     source: str,
 ) -> None:
     header = _header(source)
+    if archive is not None:
+        save_map(out.map_npz, archive)
     dr = {}
     for v in res.vehicles:
         write_tum(out.trajectory(v.name), tables[v.name], header=f"{header}\nvehicle {v.name}")
@@ -290,8 +296,6 @@ def _marginals(
 ) -> RefineResult:  # fmt: skip
     log.info("refine: marginals")
     n = sum(len(v.stamps_ns) for v in problem.vehicles)
-    if settings.landmark_covariances:
-        n += len(problem.landmark_id)
     bar = tqdm(
         total=n, desc="refine (marginals)", unit="var", disable=None if progress else True,
         leave=False,
@@ -318,7 +322,7 @@ def _reassociated(
     features: dict[str, Any],
     observations: Any,
     source_map: LandmarkMap,
-    map_npz: Path,
+    archive: LandmarkArchive | None,
     settings: RefineSettings,
     rs: ReassociationSettings,
     progress: bool,
@@ -326,8 +330,7 @@ def _reassociated(
     """The rounds of re-association and solutions (`rounds.py`) from the filter's problem."""
     kfs = [keyframe_features(features[v.name], v.stamps_ns) for v in problem0.vehicles]
     desc = true_id = None
-    if map_npz.exists():
-        archive = load_map(map_npz)
+    if archive is not None:
         row_of = {int(i): r for r, i in enumerate(archive.landmark_id)}
         rows = np.array([row_of.get(int(i), -1) for i in source_map.landmark_id], dtype=np.int64)
         if np.all(rows >= 0):
@@ -373,8 +376,9 @@ def run(
     rd = RunDir(run_dir)
     outputs = [out.map_csv, out.result_mcap, *(out.trajectory(v) for v in vehicles)]
     inputs_used = [*feature_files, *logs_used, *src_files]
-    if cfg.refine.reassociation.rounds and src.map_npz.exists():
-        inputs_used.append(src.map_npz)  # the landmarks' descriptors
+    if src.map_npz.exists():  # the landmarks' descriptors, the map file's other fields
+        inputs_used.append(src.map_npz)
+        outputs.append(out.map_npz)
     plan = rd.plan(out.name, cfg, ("logs", "fuse", "refine"), inputs_used, outputs, force)
     if plan.action == "skip":
         log.info("refine: %s is up to date (same config and inputs); --force to redo it", out.path)
@@ -386,6 +390,9 @@ def run(
     tracks = {v: read_tum(src.trajectory(v)) for v in vehicles}
     observations = load_observations(src.observations)
     source_map = read_map_csv(src.map_csv)
+    source_archive = load_map(src.map_npz) if src.map_npz.exists() else None
+    if source_archive is None:
+        log.info("refine: %s has no map file (map.npz): the refined run will have none", src.path)
     settings = settings_of(cfg, metas)
     try:
         problem = build_problem(
@@ -408,7 +415,7 @@ def run(
             try:
                 rounds = _reassociated(
                     problem, {v: features[v] for v in vehicles}, observations, source_map,
-                    src.map_npz, settings, rs, progress,
+                    source_archive, settings, rs, progress,
                 )  # fmt: skip
             except ValueError as exc:
                 raise CvslamError(f"{layout.root}: {exc}; run `cvslam extract --force`") from None
@@ -423,8 +430,13 @@ def run(
             ) from None
     tables = {v.name: _pose_table(v.stamps_ns, v.T_nav_body) for v in res.vehicles}
     lm = refined_map(source_map, problem, res, None if rounds is None else rounds.true_id)
+    archive = None
+    if source_archive is not None:
+        archive = refined_archive(
+            source_archive, problem, res, *((rounds.descriptor, rounds.true_id) if rounds else ())
+        )
     with atomic_dir(out.path) as tmp:
-        _write(FuseFolder(tmp), src, tables, res, lm, source)
+        _write(FuseFolder(tmp), src, tables, res, lm, archive, source)
     wall = time.perf_counter() - t_start
     summary = _summary(out.path, source, problem, res, tracks, tables, truth, settings, wall)
     if rounds is not None:

@@ -17,6 +17,7 @@ import yaml
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.prior_map import PriorMap
+from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.geometry.rotations import interpolate_positions
 from cvslam_cli.io.fuse_files import read_map_csv, write_map_csv
 from cvslam_cli.io.map_file import load_map, load_prior_map, save_map
@@ -95,7 +96,7 @@ def test_prior_map_round_trip_seeds_the_book_and_keeps_sessions(worlds, tmp_path
     _, b = load_prior_map(str(tmp_path / "again.npz"))
     for name in ("p_nav_m", "cov_nav_m2", "descriptor", "last_seen_ns", "session"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
-    prior = PriorMap(a, inflation=4.0)
+    prior = PriorMap(a, SlamSettings(prior_map_inflation=4.0))
     # the common offset's covariance: the smallest archived variance per axis, inflated
     var = np.diagonal(a.cov_nav_m2, axis1=1, axis2=2)
     np.testing.assert_allclose(np.diag(prior.offset_covariance()), 4.0 * var.min(axis=0))
@@ -248,3 +249,41 @@ def test_sessions_round_trip_and_older_files_read_as_session_0(worlds, tmp_path)
         tmp_path / "old.csv", index=False
     )
     assert not read_map_csv(tmp_path / "old.csv").session.any()
+
+
+def test_a_refined_map_is_a_prior_map(worlds, tmp_path, cvslam):
+    """`cvslam refine` of UAV1's run writes a map file (its landmarks at the batch solution,
+    with their marginals, and re-association's new points with descriptors) that a later run
+    takes as its prior map (`--prior-map RUN/fuse_refined`): UAV2 of the same world uses its
+    landmarks; UAV2 of another world never does."""
+    run1 = tmp_path / "uav1"
+    shutil.copytree(worlds["map3"], run1, symlinks=True)
+    r = cvslam("refine", run1)
+    assert r.code == 0, r.err
+    refined, source = (
+        load_map(run1 / "fuse_refined" / "map.npz"),
+        load_map(run1 / "fuse" / "map.npz"),
+    )
+    mp = read_map_csv(run1 / "fuse_refined" / "map.csv")
+    assert np.array_equal(refined.landmark_id[: len(source)], source.landmark_id)
+    assert len(refined) > len(source)  # the tracks' points
+    assert np.array_equal(refined.landmark_id, mp.landmark_id)
+    np.testing.assert_allclose(refined.p_nav_m, mp.p_nav_m)
+    new = slice(len(source), None)
+    assert np.all(np.linalg.eigvalsh(refined.cov_nav_m2[new]) > 0)
+    assert np.all(refined.descriptor[new].any(axis=1)) and np.all(refined.n_observations[new] >= 2)
+    assert set(refined.observers()[new]) == {"uav1"}
+    # the marginals are honest: the landmarks' NEES against the simulator's truth
+    truth = pd.read_csv(worlds["sim3"] / "truth" / "landmarks.csv").set_index("id")
+    known = refined.true_id >= 0
+    e = refined.p_nav_m[known] - truth.loc[refined.true_id[known], ["x_m", "y_m", "z_m"]].to_numpy()
+    nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(refined.cov_nav_m2[known]), e)
+    print(f"\nrefined map: {len(refined)} landmarks, NEES mean {nees.mean():.2f} (3 expected)")
+    assert 0.3 < nees.mean() < 6.0
+    for sim, used in (("sim3", True), ("sim4", False)):
+        run = _one_vehicle(worlds[sim], "uav2", tmp_path / f"uav2_{sim}")
+        r = cvslam("fuse", run, "--prior-map", run1 / "fuse_refined")
+        assert r.code == 0, r.err
+        s = _summary(run)
+        assert s["prior_map"]["landmarks"] == len(refined)
+        assert (s["vehicles"]["uav2"]["prior_landmarks"] > 12) == used, sim

@@ -45,6 +45,7 @@ def random_archive(n: int = 30, seed: int = 0, vehicles=("uav1", "uav2", "ugv1")
 
 def assert_same(a: LandmarkArchive, b: LandmarkArchive) -> None:
     assert a.vehicles == b.vehicles and a.coordinates == b.coordinates
+    assert a.estimator == b.estimator
     for name in FIELDS:
         x, y = getattr(a, name), getattr(b, name)
         assert x.dtype == y.dtype, name
@@ -58,6 +59,25 @@ def test_round_trip_is_exact_and_byte_reproducible(tmp_path):
     save_map(tmp_path / "again.npz", load_map(tmp_path / "map.npz"))
     assert (tmp_path / "again.npz").read_bytes() == (tmp_path / "map.npz").read_bytes()
     assert not list(tmp_path.glob("*.partial"))
+
+
+def test_the_estimator_round_trips_and_an_older_file_is_a_filters(tmp_path):
+    """`estimator` says what made the estimates (a batch solution's map is taken as a prior
+    map with other trust than a filter's); a file written before it existed is a filter's,
+    and a value the package does not know is refused."""
+    import dataclasses
+
+    a = dataclasses.replace(random_archive(), estimator="batch")
+    save_map(tmp_path / "map.npz", a)
+    assert load_map(tmp_path / "map.npz").estimator == "batch"
+    data = dict(np.load(tmp_path / "map.npz"))
+    del data["estimator"]
+    save_npz(tmp_path / "older.npz", data)
+    assert load_map(tmp_path / "older.npz").estimator == "filter"
+    data["estimator"] = np.array("smoother")
+    save_npz(tmp_path / "other.npz", data)
+    with pytest.raises(CvslamError, match=r"other\.npz.*estimator.*smoother"):
+        load_map(tmp_path / "other.npz")
 
 
 def test_empty_map_round_trips(tmp_path):

@@ -103,3 +103,37 @@ def test_a_direction_nothing_constrains_is_refused() -> None:
     g.remove(0)  # no prior: the pair can move together
     with pytest.raises(marginals.IndeterminateError):
         marginals.factorise(g, v)
+
+
+@pytest.mark.parametrize("batch", [256, 7])
+def test_landmarks_by_the_schur_complement_equal_their_own_solves(
+    batch: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`poses_and_landmarks`: the landmarks' marginals from the poses' columns (H_ll^-1 +
+    G Sigma_PP G^T) are the blocks of H^-1 their own solves give, in any batching, and the
+    poses' are unchanged."""
+    g, v, xs, ls = _pose_graph(4)
+    f = marginals.factorise(g, v)
+    poses_alone, own = f.covariances(xs), f.covariances(ls)
+    monkeypatch.setattr(marginals, "BATCH_COLUMNS", batch)
+    poses, lms = f.poses_and_landmarks(xs, ls)
+    np.testing.assert_array_equal(poses, poses_alone)
+    np.testing.assert_allclose(lms, own, rtol=1e-9, atol=1e-15)
+    # the poses' term matters here: H_ll^-1 alone (the point given the poses) is smaller
+    given_poses = marginals._LandmarkBlocks(f, ls, f._columns(xs, 6)).A_inv
+    ratio = np.trace(own, axis1=1, axis2=2) / np.trace(given_poses, axis1=1, axis2=2)
+    assert np.min(ratio) > 1.05
+
+
+def test_a_landmark_tied_to_another_landmark_is_refused() -> None:
+    """The Schur form needs every landmark factor to end on poses: a factor between two
+    landmarks is refused, not silently dropped."""
+    g, v, xs, ls = _pose_graph(5)
+    g.add(
+        gtsam.BetweenFactorPoint3(
+            ls[0], ls[1], v.atPoint3(ls[1]) - v.atPoint3(ls[0]),
+            gtsam.noiseModel.Isotropic.Sigma(3, 0.1),
+        )
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="other than the poses"):
+        marginals.factorise(g, v).poses_and_landmarks(xs, ls)
