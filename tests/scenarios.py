@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from cvslam_cli.sim.imu import ImuNoise
@@ -129,10 +132,12 @@ def monte_carlo_uav_scenario(outlier_fraction: float, duration_s: float) -> dict
     }
 
 
-def ekf_on_simulation(sim_dir: Path, cfg: Any) -> tuple[Any, Any]:
+def ekf_on_simulation(
+    sim_dir: Path, cfg: Any, edit: Callable[[Any], Any] | None = None
+) -> tuple[Any, Any]:
     """The EKF over a simulated one-UAV run (`uav1`, landmark mode) with config `cfg`: its
     SlamResult and uav1's ground-truth PoseTable (one BLAS thread: the Monte Carlo tests'
-    figures stay bit for bit)."""
+    figures stay bit for bit); `edit` changes the feature set first (e.g. `blackout`)."""
     from threadpoolctl import threadpool_limits
 
     from cvslam_cli.estimation import stage
@@ -142,8 +147,28 @@ def ekf_on_simulation(sim_dir: Path, cfg: Any) -> tuple[Any, Any]:
     from cvslam_cli.io.mcap_source import McapLogSource
 
     fs = {"uav1": load_features(sim_dir / "features" / "uav1.npz")[0]}
+    if edit is not None:
+        fs = {k: edit(v) for k, v in fs.items()}
     logs = LogSet([McapLogSource(sim_dir / "uav1.mcap")], cfg.logs)
     inputs, truth = stage.build_inputs(cfg, fs, logs)
     with threadpool_limits(limits=1, user_api="blas"):
         res = Slam(inputs, stage.slam_settings(cfg.fuse, "ekf")).run()
     return res, truth["uav1"]
+
+
+def blackout(fs: Any, start_s: float, end_s: float) -> Any:
+    """The feature set `fs` with no stereo match in the frames from `start_s` to `end_s`
+    after its first (a camera that saw nothing: fog, a lens cap, a featureless stretch);
+    the keypoints are kept."""
+    t_s = (fs.frame_stamp_ns - fs.frame_stamp_ns[0]) * 1e-9
+    dark = (t_s >= start_s) & (t_s < end_s)
+    counts = np.diff(fs.match_offsets)
+    keep = np.repeat(~dark, counts)
+    counts[dark] = 0
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    matches = {
+        f.name: getattr(fs, f.name)[keep]
+        for f in dataclasses.fields(fs)
+        if f.name.startswith("match_") and f.name != "match_offsets"
+    }
+    return dataclasses.replace(fs, match_offsets=offsets, **matches)

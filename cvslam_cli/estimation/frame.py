@@ -91,5 +91,6 @@ class FrameOutcome:
     dof: int = 0
     gamma: float = float("nan")
     gamma_raised: bool = False
+    linearisations: int = 0
     new_rows: I64 = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     window: WindowOutcome = field(default_factory=WindowOutcome)

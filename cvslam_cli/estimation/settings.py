@@ -33,6 +33,8 @@ class SlamSettings:
     consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
     descriptor_ratio: float = 0.8
     max_descriptor_distance: float = 350.0
+    iterate_sigma_ratio: float = 0.05  # linearisation.too_uncertain (0: never iterate)
+    max_update_iterations: int = 5  # update.VisualUpdater.iterated_update
     max_landmarks: int = 150  # with one vehicle in the filter ...
     landmarks_per_added_vehicle: int = 100  # ... plus this many per other vehicle ...
     max_landmarks_total: int = 400  # ... up to this many in all

@@ -19,7 +19,8 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
    (`association.classify`). A vehicle whose pose is not known yet is localised in the
    shared map instead (`cooperation.py`);
 3. update: one stacked EKF or NH-infinity update with those observations (eq. 19,
-   `update.py`, `filters.py`) and the window's pending rows (step 5 of the frame before);
+   `update.py`, `filters.py`) and the window's pending rows (step 5 of the frame before),
+   iterated when the vehicle is too uncertain for one linearisation (`linearisation.py`);
    loop closures and cross-vehicle observations are logged (`events.py`);
 4. map: when fewer than `target_tracked` landmarks were updated, confirmed type-3 matches
    become landmarks, the state kept under its landmark bound by eviction
@@ -64,6 +65,7 @@ from cvslam_cli.estimation.cooperation import Cooperation
 from cvslam_cli.estimation.events import Divergence, DivergenceMonitor, EventLog
 from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
 from cvslam_cli.estimation.landmark_coordinates import coordinates, resolve
+from cvslam_cli.estimation.linearisation import too_uncertain
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
@@ -333,10 +335,17 @@ class Slam:
         vin = run.vin
         v_idx = self.state.vehicles[vin.name].index
         extra = self.window.pending_rows() if self.window is not None else None
-        res = self.updater.update(
-            v_idx, found.pred, found.pred_rows, frame.z[found.match_rows],
+        args = (
+            found.pred, found.pred_rows, frame.z[found.match_rows],
             self.cooperation.bounded_vehicles(), extra,
         )  # fmt: skip
+        pose_cov = VehiclePose.of(self.state, vin).cov[:3, :3]
+        if too_uncertain(pose_cov, frame.p_cam_m, s.iterate_sigma_ratio):
+            res, out.linearisations = self.updater.iterated_update(
+                vin, *args, iterations=s.max_update_iterations
+            )
+        else:
+            res, out.linearisations = self.updater.update(v_idx, *args), 1
         if self.window is not None:
             self.window.settle()
         k = len(found.pred_rows)
@@ -457,6 +466,7 @@ class Slam:
                 "nis_dof": out.dof,
                 "gamma": out.gamma,
                 "gamma_raised": out.gamma_raised,
+                "linearisations": out.linearisations,
                 "tracks_used": out.window.used,
                 "tracks_rejected": out.window.rejected,
                 "window_nis": out.window.nis,

@@ -449,6 +449,8 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         consistency_chi2=float(chi2.ppf(a.consistency_probability, 4)),
         descriptor_ratio=a.descriptor_ratio,
         max_descriptor_distance=a.max_descriptor_distance,
+        iterate_sigma_ratio=a.iterate_sigma_ratio,
+        max_update_iterations=a.max_update_iterations,
         max_landmarks=m.max_landmarks,
         landmarks_per_added_vehicle=m.landmarks_per_added_vehicle,
         max_landmarks_total=m.max_landmarks_total,

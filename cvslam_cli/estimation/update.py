@@ -42,6 +42,29 @@ class ExtraRows:
     R: F64
 
 
+@dataclass(frozen=True, eq=False)
+class _Stacked:
+    """An update's stacked rows: H (m, c) over the state columns `cols` (c,), noise R (m, m)
+    (unscaled), measurement y and prediction h (m,), H's known zeros `blocks`, and the NIS
+    term of the v differences the rows leave out."""
+
+    H: F64
+    cols: I64
+    R: F64
+    y: F64
+    h: F64
+    blocks: BlockRows
+    nis_v_difference: float
+
+
+def _gain_step(P: F64, s: _Stacked, R_hat: F64) -> F64:
+    """K (y - h) (n,) for the stacked rows `s`, K = P H^T (H P H^T + R_hat)^-1 (repeated
+    columns add up, as in the update)."""
+    PHt = P[s.cols].T @ s.H.T  # (n, m): P[cols].T reads P's rows (P is symmetric)
+    S = s.H @ PHt[s.cols] + R_hat
+    return PHt @ np.linalg.solve(0.5 * (S + S.T), s.y - s.h)
+
+
 class VisualUpdater:
     """Predictions and stacked updates on `state` with the filter `settings`, the pixel
     noise `pixel_sigma_px` and the run's gamma policy. `R_pixel` (4, 4): the noise of one
@@ -77,6 +100,59 @@ class VisualUpdater:
         """One update (eq. 19) with observations z (k, 4) of the predicted landmarks `pred`
         rows `rows` (k,) by the vehicle whose state rows are v_idx, and the `extra` rows if
         any; NH-infinity's bound on the vehicles `bounded`."""
+        return self._apply(self._stack(v_idx, pred, rows, z, extra), bounded)
+
+    def iterated_update(
+        self,
+        vin: VehicleInput,
+        pred: LandmarkPrediction,
+        rows: I64,
+        z: F64,
+        bounded: Sequence[str],
+        extra: ExtraRows | None = None,
+        iterations: int = 5,
+    ) -> tuple[UpdateResult, int]:
+        """`update` relinearised at its own estimate (the iterated EKF: Gauss-Newton on the
+        update's cost, for a correction too large for one linearisation): with x0 the state
+        before, x_(i+1) = x0 + K_i (y - h(x_i) - H_i (x0 - x_i)), K_i the gain at x_i (the
+        same for NH-infinity, eq. 14's R_hat), the landmarks `rows` of `pred` predicted
+        again from vin's pose at each x_i, at most `iterations` linearisations, until a
+        step moves no state by more than 1e-6 of its units or a step is larger than the
+        one before (not converging: the last linearisation is kept); the covariance (and
+        NH-infinity's bound) then from the last one, as `update` does; also how many
+        linearisations it took."""
+        st = self.state
+        v_idx = st.vehicles[vin.name].index
+        slots = pred.slots[rows]
+        x0 = st.x.copy()
+        done, last_step = 1, np.inf
+        for _ in range(iterations - 1):
+            rows_i = self._stack(v_idx, pred, rows, z, extra, x0)
+            x_next = x0 + _gain_step(st.P, rows_i, self.settings.measurement_noise(rows_i.R))
+            step = float(np.max(np.abs(x_next - st.x)))
+            if step > last_step:  # not converging: keep the last linearisation
+                break
+            st.x, last_step = x_next, step
+            pred, _ = self.predict(vin, VehiclePose.of(st, vin), slots)
+            rows = np.arange(len(slots))
+            done += 1
+            if step < 1e-6:
+                break
+        stacked = self._stack(v_idx, pred, rows, z, extra, x0)
+        st.x = x0
+        return self._apply(stacked, bounded), done
+
+    def _stack(
+        self,
+        v_idx: I64,
+        pred: LandmarkPrediction,
+        rows: I64,
+        z: F64,
+        extra: ExtraRows | None,
+        x0: F64 | None = None,
+    ) -> _Stacked:
+        """The stacked rows of an update (module docstring); with `x0`, linearised at the
+        state now for an estimate relative to x0 (`iterated_update`: h + H (x0 - x))."""
         k, nv = len(rows), len(v_idx)
         lm_cols = self.state.landmark_columns(pred.slots[rows])  # (k, d)
         d = lm_cols.shape[1]
@@ -98,20 +174,26 @@ class VisualUpdater:
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
         R = np.kron(np.eye(k), R_obs)
         y, h = z_obs.reshape(-1), h_obs.reshape(-1)
+        if x0 is not None:
+            h = h + H @ (x0 - self.state.x)[cols]
         tail = 0
         if extra is not None:  # block-diagonal: the two kinds of rows touch their own columns
             m, tail = extra.H.shape
             H = np.block([[H, np.zeros((len(H), tail))], [np.zeros((m, H.shape[1])), extra.H]])
             cols = np.concatenate([cols, extra.cols])
             R = np.block([[R, np.zeros((len(R), m))], [np.zeros((m, len(R))), extra.R]])
+            # linear rows about x0: h(x) + H (x0 - x) = 0 at any x
             y, h = np.concatenate([y, extra.r]), np.concatenate([h, np.zeros(m)])
-        # P H^T from H's non-zero blocks only (the vehicle's columns, then r x d per
-        # landmark, then the extra rows' own columns)
+        return _Stacked(H, cols, R, y, h, BlockRows(nv, r, d, tail), nis_v_difference)
+
+    def _apply(self, s: _Stacked, bounded: Sequence[str]) -> UpdateResult:
+        """The update of the state with stacked rows `s`; P H^T from H's non-zero blocks
+        only (the vehicle's columns, then r x d per landmark, then the extra rows' own)."""
         res = self.state.update(
-            self.settings, self.gamma, y, h, H, cols, R, vehicles=bounded,
-            blocks=BlockRows(nv, r, d, tail),
+            self.settings, self.gamma, s.y, s.h, s.H, s.cols, s.R, vehicles=bounded,
+            blocks=s.blocks,
         )  # fmt: skip
-        return replace(res, nis=res.nis + nis_v_difference)
+        return replace(res, nis=res.nis + s.nis_v_difference)
 
     def _constrained(self, v_idx: I64, lm_cols: I64, H_v: F64, H_m: F64) -> tuple[F64, F64]:
         """H_v (k, r, n_v) and H_m (k, r, d) of k observations, each modified over its own
