@@ -39,7 +39,6 @@ sessions kept, the new landmarks one more than the prior's largest.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -69,20 +68,20 @@ class _Static:
     kind: str = "static"
 
 
-def prior_inflation(settings: SlamSettings, archive: LandmarkArchive) -> float:
-    """The inflation of a prior map's marginals: `refined_prior_map_inflation` for a map a
-    batch solution made (`cvslam refine`: exact marginals of one joint solution), else
-    `prior_map_inflation` (a filter's map, whose marginals lost their correlations at every
+def prior_inflation(settings: SlamSettings, archive: LandmarkArchive) -> F64:
+    """(N,) the inflation of each prior landmark's marginal: `refined_prior_map_inflation`
+    for one a batch solution estimated (`cvslam refine`: the exact marginal of one joint
+    solution), else `prior_map_inflation` (a filter's, whose correlations were lost at every
     eviction). Chosen by NEES: BENCHMARKS.md "Fuse: multi-session (issue 20)"."""
-    if archive.estimator == "batch":
-        return settings.refined_prior_map_inflation
-    return settings.prior_map_inflation
+    return np.where(
+        archive.batch, settings.refined_prior_map_inflation, settings.prior_map_inflation
+    )
 
 
 class PriorMap:
     """The prior map of a run: `archive` (N landmarks), which become the book's ids 0..N-1
-    (`seed`); `session` the number of this run's landmarks; `inflation` of the landmarks'
-    marginals (`prior_inflation`)."""
+    (`seed`); `session` the number of this run's landmarks; `inflation` (N,) of each
+    landmark's marginal (`prior_inflation`)."""
 
     def __init__(self, archive: LandmarkArchive, settings: SlamSettings) -> None:
         self.archive = archive
@@ -91,11 +90,11 @@ class PriorMap:
         self.inflation = prior_inflation(settings, archive)
 
     def offset_covariance(self) -> F64:
-        """B (3, 3): the per-axis minimum of the archived landmarks' variances (the common
-        part of every landmark's error is no larger than any one's) times the inflation."""
-        var = np.diagonal(self.archive.cov_nav_m2, axis1=1, axis2=2)
+        """B (3, 3): the per-axis minimum of the archived landmarks' inflated variances (the
+        common part of every landmark's error is no larger than any one's)."""
+        var = self.inflation[:, None] * np.diagonal(self.archive.cov_nav_m2, axis1=1, axis2=2)
         var = var[np.all(np.isfinite(var), axis=1)]
-        return self.inflation * np.diag(var.min(axis=0)) if len(var) else np.eye(3)
+        return np.diag(var.min(axis=0)) if len(var) else np.eye(3)
 
     def offset_block(self) -> tuple[str, Any, F64, F64]:
         """The offset b's block for `JointState` (module docstring): x0 = 0, P0 = B."""
@@ -126,7 +125,9 @@ class PriorMap:
 
     def merged_archive(self, session: LandmarkArchive) -> LandmarkArchive:
         """The run's map: its book's archive `session` (the prior's landmarks first, as
-        seeded) with the prior's vehicles' last observations and sessions restored."""
+        seeded) with the prior's vehicles' last observations and sessions restored, and
+        the prior's batch estimates (`LandmarkArchive.batch`) still marked as such where
+        this run did not observe them (an observed one is this filter's estimate now)."""
         a = self.archive
         vehicles = list(a.vehicles) + [v for v in session.vehicles if v not in a.vehicles]
         last = np.full((len(session), len(vehicles)), NEVER, dtype=np.int64)
@@ -136,9 +137,11 @@ class PriorMap:
             last[:, col] = np.maximum(last[:, col], session.last_seen_ns[:, j])
         sessions = np.full(len(session), self.session, dtype=np.int64)
         sessions[: self.n] = a.session
+        batch = np.zeros(len(session), dtype=bool)
+        batch[: self.n] = a.batch & np.all(session.last_seen_ns[: self.n] == NEVER, axis=1)
         fields = {k: getattr(session, k) for k in _ARCHIVE_FIELDS}
         return LandmarkArchive(
-            **fields, vehicles=tuple(vehicles), last_seen_ns=last, session=sessions
+            **fields, vehicles=tuple(vehicles), last_seen_ns=last, session=sessions, batch=batch
         )
 
 
@@ -161,8 +164,7 @@ class PriorLandmarks(Reactivation):
         R_pixel_hat: F64,
         prior: PriorMap,
     ) -> None:
-        inflated = dataclasses.replace(settings, reactivation_inflation=prior.inflation)
-        super().__init__(state, book, inflated, R_pixel_hat)
+        super().__init__(state, book, settings, R_pixel_hat)
         self.prior = prior
 
     @property
@@ -186,7 +188,7 @@ class PriorLandmarks(Reactivation):
         st, book = self.state, self.book
         b_rows = st.vehicles[OFFSET_BLOCK].index
         l_nav = book.p_nav_m[ids] - st.x[b_rows]
-        E = self.settings.reactivation_inflation * book.cov_nav_m2[ids]
+        E = self.inflated_cov(ids)
         if st.coords.anchored:
             slots = _anchored_on_offset(st, run, l_nav, E, b_rows)
         else:
@@ -197,6 +199,11 @@ class PriorLandmarks(Reactivation):
             slots = st.add_landmarks(l_nav, P_ll, -np.tile(st.P[b_rows, :], (k, 1)))
         book.readmit(ids)
         return slots
+
+    def inflated_cov(self, ids: I64) -> F64:
+        """(k, 3, 3) the prior landmarks' archived covariances, each inflated by its own
+        `PriorMap.inflation`."""
+        return self.prior.inflation[ids][:, None, None] * self.book.cov_nav_m2[ids]
 
     def find(self, run: VehicleRun, frame: FrameMatches, free: np.ndarray) -> Found:
         found = super().find(run, frame, free)

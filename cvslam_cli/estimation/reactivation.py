@@ -95,6 +95,11 @@ class Reactivation:
     def enabled(self) -> bool:
         return self.settings.reactivation
 
+    def inflated_cov(self, ids: I64) -> F64:
+        """(k, 3, 3) the archived covariances of the landmarks `ids`, inflated for their
+        lost correlation (module docstring)."""
+        return self.settings.reactivation_inflation * self.book.cov_nav_m2[ids]
+
     def archived(self, t_ns: int) -> I64:
         """Ids of the landmarks out of the state nobody observed for the minimum absence."""
         book = self.book
@@ -125,7 +130,7 @@ class Reactivation:
         ids = ids[book.ids_seen_from(ids, views, np.cos(s.max_view_angle_rad))]
         if not len(ids):
             return none
-        C = s.reactivation_inflation * book.cov_nav_m2[ids]
+        C = self.inflated_cov(ids)
         z, H_pose, H_m = vin.obs.predict(p, euler, book.p_nav_m[ids])
         H_v = H_pose @ pose.J
         S = (
@@ -158,7 +163,7 @@ class Reactivation:
         slots."""
         st, book = self.state, self.book
         m = book.p_nav_m[ids]
-        C = self.settings.reactivation_inflation * book.cov_nav_m2[ids]
+        C = self.inflated_cov(ids)
         k = len(ids)
         # with a gauge (gauge.py): the rows the landmark had when it left; it moves with the
         # team's position and heading as it did then

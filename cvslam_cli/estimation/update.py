@@ -118,28 +118,33 @@ class VisualUpdater:
         same for NH-infinity, eq. 14's R_hat), the landmarks `rows` of `pred` predicted
         again from vin's pose at each x_i, at most `iterations` linearisations, until a
         step moves no state by more than 1e-6 of its units or a step is larger than the
-        one before (not converging: the last linearisation is kept); the covariance (and
+        one before (not converging: the estimate before it is kept, from the linearisation
+        that gave it); the state is left at x0 until the update; the covariance (and
         NH-infinity's bound) then from the last one, as `update` does; also how many
         linearisations it took."""
         st = self.state
         v_idx = st.vehicles[vin.name].index
         slots = pred.slots[rows]
         x0 = st.x.copy()
+        stacked = self._stack(v_idx, pred, rows, z, extra, x0)  # linearised at x0
+        previous = stacked
         done, last_step = 1, np.inf
-        for _ in range(iterations - 1):
-            rows_i = self._stack(v_idx, pred, rows, z, extra, x0)
-            x_next = x0 + _gain_step(st.P, rows_i, self.settings.measurement_noise(rows_i.R))
-            step = float(np.max(np.abs(x_next - st.x)))
-            if step > last_step:  # not converging: keep the last linearisation
-                break
-            st.x, last_step = x_next, step
-            pred, _ = self.predict(vin, VehiclePose.of(st, vin), slots)
-            rows = np.arange(len(slots))
-            done += 1
-            if step < 1e-6:
-                break
-        stacked = self._stack(v_idx, pred, rows, z, extra, x0)
-        st.x = x0
+        try:
+            for _ in range(iterations - 1):
+                x_next = x0 + _gain_step(st.P, stacked, self.settings.measurement_noise(stacked.R))
+                step = float(np.max(np.abs(x_next - st.x)))
+                if step > last_step:  # not converging: back to the linearisation that gave x
+                    stacked, done = previous, done - 1
+                    break
+                st.x, last_step = x_next, step
+                pred, _ = self.predict(vin, VehiclePose.of(st, vin), slots)
+                previous = stacked
+                stacked = self._stack(v_idx, pred, np.arange(len(slots)), z, extra, x0)
+                done += 1
+                if step < 1e-6:
+                    break
+        finally:
+            st.x = x0
         return self._apply(stacked, bounded), done
 
     def _stack(

@@ -32,9 +32,10 @@ _ARRAYS = (
     "evicted_ns",
     "reactivations",
     "session",
+    "batch",
 )
 # entries a file may lack (written by an earlier cvslam of the same version): read as None
-_OPTIONAL = ("session",)
+_OPTIONAL = ("session", "batch")
 
 
 def save_map(path: Path, archive: LandmarkArchive) -> None:
@@ -48,7 +49,6 @@ def save_map(path: Path, archive: LandmarkArchive) -> None:
             "nav_frame": np.array(NAV_FRAME),
             "vehicles": np.array(archive.vehicles, dtype=str),
             "coordinates": np.array(archive.coordinates),
-            "estimator": np.array(archive.estimator),
             **arrays,
         },
     )
@@ -64,8 +64,6 @@ def load_map(path: Path) -> LandmarkArchive:
         return LandmarkArchive(
             vehicles=tuple(str(v) for v in data["vehicles"].reshape(-1)),
             coordinates=str(data["coordinates"]),
-            # a file without it was written by `cvslam fuse` before refine wrote map files
-            estimator=str(data["estimator"]) if "estimator" in data else "filter",
             **{name: data[name] for name in _ARRAYS if name in data or name not in _OPTIONAL},
         )
     except (KeyError, ValueError) as exc:

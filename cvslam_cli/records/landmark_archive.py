@@ -23,8 +23,6 @@ from cvslam_cli.records.arrays import F64, I64, U8, BoolArray, check_shape
 from cvslam_cli.records.features import DESCRIPTOR_SIZE
 from cvslam_cli.records.landmarks import LandmarkMap
 
-ESTIMATORS = ("filter", "batch")
-"""What may have made an archive's estimates (`LandmarkArchive.estimator`)."""
 NEVER_NS = int(np.iinfo(np.int64).min)
 """A stamp meaning "never" (`last_seen_ns` of a vehicle that did not see the landmark,
 `evicted_ns` of one never evicted)."""
@@ -52,10 +50,11 @@ class LandmarkArchive:
     - `session` (N,) int64: the mapping session that created the landmark (0: the first;
       a run started from a prior map, `estimation/prior_map.py`, keeps the prior's and
       numbers its own landmarks one more than the prior's largest). None: all 0;
-    - `estimator`: what made the estimates: "filter" (`cvslam fuse`: each covariance the
-      marginal when the landmark was last evicted or at the end, the correlations dropped
-      by a bounded state, module docstring) or "batch" (`cvslam refine`: the marginals of
-      one joint solution over every pose and landmark at its end).
+    - `batch` (N,) bool: the landmark's estimate and covariance are a batch solution's
+      (`cvslam refine`: the marginal of one joint solution over every pose and landmark)
+      rather than a filter's (`cvslam fuse`: the marginal when it was last evicted or at
+      the end, the correlations a bounded state dropped, module docstring). None: all
+      false.
     """
 
     vehicles: tuple[str, ...]
@@ -73,7 +72,7 @@ class LandmarkArchive:
     reactivations: I64
     coordinates: str
     session: I64 | None = None
-    estimator: str = "filter"
+    batch: BoolArray | None = None
 
     def __post_init__(self) -> None:
         vehicles = tuple(self.vehicles)
@@ -101,14 +100,13 @@ class LandmarkArchive:
         if self.session is None:
             object.__setattr__(self, "session", np.zeros(len(self.landmark_id), dtype=np.int64))
         check("session", ("N",), "iu", np.int64)
+        if self.batch is None:
+            object.__setattr__(self, "batch", np.zeros(len(self.landmark_id), dtype=bool))
+        check("batch", ("N",), "b", np.bool_)
         if len(np.unique(self.landmark_id)) != len(self.landmark_id):
             raise ValueError("LandmarkArchive.landmark_id: ids must be unique")
         if not isinstance(self.coordinates, str):
             raise ValueError("LandmarkArchive.coordinates: expected a string")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(
-                f"LandmarkArchive.estimator: {self.estimator!r}, expected one of {ESTIMATORS}"
-            )
 
     def __len__(self) -> int:
         return len(self.landmark_id)
@@ -172,5 +170,6 @@ def merge_archives(archives: Sequence[LandmarkArchive]) -> LandmarkArchive:
         evicted_ns=cat("evicted_ns"),
         reactivations=cat("reactivations"),
         session=cat("session"),
+        batch=cat("batch"),
         coordinates=coords.pop() if len(coords) == 1 else ";".join(sorted(coords)),
     )

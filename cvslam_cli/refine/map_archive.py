@@ -8,9 +8,11 @@ and times, the observation count, and its mean viewing direction from the observ
 keyframes' body positions (the cameras are centimetres from them; the direction only
 decides from where a landmark is expected in view). Its descriptor is the one
 re-association matched it with. A new point is out of any filter state (`in_state` false),
-never evicted nor re-activated, and of the source's latest mapping session. The archive's
-`estimator` is "batch": a later run takes its landmarks with `fuse.map.
-refined_prior_map_inflation` (`estimation/prior_map.py`).
+never evicted nor re-activated, and of the source's latest mapping session. The refined
+landmarks and the new points are marked `batch` (`LandmarkArchive.batch`): a later run
+takes them with `fuse.map.refined_prior_map_inflation`, and the source's landmarks the
+batch did not solve (seen from fewer than two keyframes) with the filter's inflation
+(`estimation/prior_map.py`).
 """
 
 from __future__ import annotations
@@ -37,9 +39,12 @@ def refined_archive(
     known = rows >= 0
     p = source.p_nav_m.copy()
     cov = source.cov_nav_m2.copy()
+    # a refined landmark is the batch solution's, its covariance too (NaN: not computed,
+    # `refine.landmark_covariances`, as map.csv says; a prior map then leaves it out)
     p[rows[known]] = res.p_nav_m[known]
-    has_cov = known & np.all(np.isfinite(res.cov), axis=(1, 2))
-    cov[rows[has_cov]] = res.cov[has_cov]
+    cov[rows[known]] = res.cov[known]
+    batch = np.array(source.batch, copy=True)
+    batch[rows[known]] = True
     new = np.flatnonzero(~known)
     if len(new) and descriptor is None:
         raise ValueError("refined_archive: new points need their descriptors")
@@ -72,8 +77,8 @@ def refined_archive(
         evicted_ns=np.concatenate([source.evicted_ns, np.full(len(new), NEVER_NS)]),
         reactivations=np.concatenate([source.reactivations, np.zeros(len(new), dtype=np.int64)]),
         session=np.concatenate([sessions, np.full(len(new), session, dtype=np.int64)]),
+        batch=np.concatenate([batch, np.ones(len(new), dtype=bool)]),
         coordinates=source.coordinates,
-        estimator="batch",
     )
 
 

@@ -162,7 +162,7 @@ def refined_map(
     """The source map with the refined landmarks moved (and their marginal std devs), and
     the new points of re-association's tracks (ids not in the source map) appended, with
     their observers, observation counts and times from the problem and `true_id` (L,) (the
-    problem's landmarks' simulator ids; None: unknown)."""
+    problem's landmarks' simulator ids; None: unknown), of the source's latest session."""
     p = source.p_nav_m.copy()
     std = source.std_m.copy()
     row_of = {int(i): r for r, i in enumerate(source.landmark_id)}
@@ -188,6 +188,8 @@ def refined_map(
         first.append(int(obs_stamp[sel].min()))
         last.append(int(obs_stamp[sel].max()))
     tid = np.full(len(new), -1, dtype=np.int64) if true_id is None else true_id[new]
+    assert out.session is not None  # LandmarkMap fills it
+    latest = int(out.session.max()) if len(out.session) else 0  # the new points' session
     return LandmarkMap(
         np.concatenate([out.landmark_id, problem.landmark_id[new]]),
         np.vstack([out.p_nav_m, res.p_nav_m[new]]),
@@ -198,6 +200,7 @@ def refined_map(
         np.concatenate([out.last_seen_ns, last]),
         np.concatenate([out.in_state, np.zeros(len(new), dtype=bool)]),
         np.concatenate([out.true_id, tid]),
+        np.concatenate([out.session, np.full(len(new), latest, dtype=np.int64)]),
     )
 
 

@@ -264,11 +264,17 @@ def test_a_refined_map_is_a_prior_map(worlds, tmp_path, cvslam):
         load_map(run1 / "fuse_refined" / "map.npz"),
         load_map(run1 / "fuse" / "map.npz"),
     )
+    # the refined landmarks and the new points are the batch's, the rest the filter's
+    assert refined.batch[len(source) :].all() and not source.batch.any()
+    assert 0.5 * len(source) < refined.batch[: len(source)].sum() < len(source)
     mp = read_map_csv(run1 / "fuse_refined" / "map.csv")
     assert np.array_equal(refined.landmark_id[: len(source)], source.landmark_id)
     assert len(refined) > len(source)  # the tracks' points
     assert np.array_equal(refined.landmark_id, mp.landmark_id)
     np.testing.assert_allclose(refined.p_nav_m, mp.p_nav_m)
+    std = np.sqrt(np.diagonal(refined.cov_nav_m2, axis1=1, axis2=2))
+    np.testing.assert_allclose(std, mp.std_m, rtol=1e-12)  # map.csv summarises map.npz
+    np.testing.assert_array_equal(refined.session, mp.session)
     new = slice(len(source), None)
     assert np.all(np.linalg.eigvalsh(refined.cov_nav_m2[new]) > 0)
     assert np.all(refined.descriptor[new].any(axis=1)) and np.all(refined.n_observations[new] >= 2)

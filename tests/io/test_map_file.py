@@ -45,7 +45,7 @@ def random_archive(n: int = 30, seed: int = 0, vehicles=("uav1", "uav2", "ugv1")
 
 def assert_same(a: LandmarkArchive, b: LandmarkArchive) -> None:
     assert a.vehicles == b.vehicles and a.coordinates == b.coordinates
-    assert a.estimator == b.estimator
+    np.testing.assert_array_equal(a.batch, b.batch)
     for name in FIELDS:
         x, y = getattr(a, name), getattr(b, name)
         assert x.dtype == y.dtype, name
@@ -61,22 +61,22 @@ def test_round_trip_is_exact_and_byte_reproducible(tmp_path):
     assert not list(tmp_path.glob("*.partial"))
 
 
-def test_the_estimator_round_trips_and_an_older_file_is_a_filters(tmp_path):
-    """`estimator` says what made the estimates (a batch solution's map is taken as a prior
-    map with other trust than a filter's); a file written before it existed is a filter's,
-    and a value the package does not know is refused."""
+def test_batch_marks_round_trip_and_an_older_file_is_a_filters(tmp_path):
+    """`batch` marks the landmarks a batch solution estimated (a later run trusts their
+    marginals more than a filter's); a file written before it existed is all a filter's."""
     import dataclasses
 
-    a = dataclasses.replace(random_archive(), estimator="batch")
+    a = random_archive()
+    a = dataclasses.replace(a, batch=np.arange(len(a)) % 3 == 0)
     save_map(tmp_path / "map.npz", a)
-    assert load_map(tmp_path / "map.npz").estimator == "batch"
+    np.testing.assert_array_equal(load_map(tmp_path / "map.npz").batch, a.batch)
     data = dict(np.load(tmp_path / "map.npz"))
-    del data["estimator"]
+    del data["batch"]
     save_npz(tmp_path / "older.npz", data)
-    assert load_map(tmp_path / "older.npz").estimator == "filter"
-    data["estimator"] = np.array("smoother")
+    assert not load_map(tmp_path / "older.npz").batch.any()
+    data["batch"] = np.zeros(3, dtype=bool)  # not one per landmark
     save_npz(tmp_path / "other.npz", data)
-    with pytest.raises(CvslamError, match=r"other\.npz.*estimator.*smoother"):
+    with pytest.raises(CvslamError, match=r"other\.npz.*corrupt.*batch"):
         load_map(tmp_path / "other.npz")
 
 
