@@ -119,7 +119,7 @@ class VisualUpdater:
         again from vin's pose at each x_i, at most `iterations` linearisations, until a
         step moves no state by more than 1e-6 of its units or a step is larger than the
         one before (not converging: the estimate before it is kept, from the linearisation
-        that gave it); the state is left at x0 until the update; the covariance (and
+        that gave it); the state is back at x0 for the update itself; the covariance (and
         NH-infinity's bound) then from the last one, as `update` does; also how many
         linearisations it took."""
         st = self.state

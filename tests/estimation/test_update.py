@@ -16,7 +16,7 @@ from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import InsModel
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.state import JointState
-from cvslam_cli.estimation.update import VisualUpdater
+from cvslam_cli.estimation.update import ExtraRows, VisualUpdater
 from cvslam_cli.estimation.vehicle import VehiclePose
 from cvslam_cli.geometry.rotations import euler_zyx_to_matrix
 from cvslam_cli.sim.scenario import StereoRigSpec
@@ -137,3 +137,37 @@ def test_the_iterated_update_makes_a_correction_one_linearisation_cannot(kind: s
     # one linearisation: 0.75 m off, and sure of itself (beyond chi2(3) at 0.999); iterated:
     # 0.27 m, inside its covariance
     assert nees1 > 16.27 > 7.81 > nees5 and err5 < 0.5 * err1
+
+
+def test_the_iterated_update_stops_where_the_update_cost_is_stationary() -> None:
+    """At convergence x is the minimum of the update's cost (the iterated EKF is
+    Gauss-Newton on it): P0^-1 (x - x0) = H(x)^T R^-1 (z - h(x)) + H_e^T R_e^-1 (r - H_e (x
+    - x0)), with the stereo rows relinearised at x and linear rows of the sliding window's
+    kind (`ExtraRows`) stacked in; checked on the gradient, in units of its terms."""
+    st, vin, slots, z, _ = _far_off(np.random.default_rng(4), k=8)
+    rng = np.random.default_rng(7)
+    cols_e = np.array([3, 4, 5, 9, 10])  # the velocity and a landmark's columns
+    H_e = rng.normal(size=(4, len(cols_e)))
+    R_e = np.diag(rng.uniform(0.5, 2.0, 4))
+    extra = ExtraRows(rng.normal(size=4), H_e, cols_e, R_e)
+    up = VisualUpdater(st, FilterSettings(kind="ekf"), SIGMA_PX)
+    x0, P0 = st.x.copy(), st.P.copy()
+    pred, _ = up.predict(vin, VehiclePose.of(st, vin), slots)
+    _, done = up.iterated_update(
+        vin, pred, np.arange(len(slots)), z, ["uav"], extra=extra, iterations=20
+    )
+    pred, _ = up.predict(vin, VehiclePose.of(st, vin), slots)  # relinearised at x
+    H = np.zeros((4 * len(slots), st.n))
+    v_idx = st.vehicles["uav"].index
+    lm_cols = st.landmark_columns(slots)
+    for j in range(len(slots)):
+        H[4 * j : 4 * j + 4, v_idx] = pred.H_v[j]
+        H[4 * j : 4 * j + 4, lm_cols[j]] += pred.H_m[j]
+    dx = st.x - x0
+    prior = np.linalg.solve(P0, dx)
+    stereo = H.T @ (z - pred.z).reshape(-1) / SIGMA_PX**2
+    window = np.zeros(st.n)
+    window[cols_e] = H_e.T @ np.linalg.solve(R_e, extra.r - H_e @ dx[cols_e])
+    scale = np.abs(prior).max()
+    assert 2 < done <= 20 and scale > 1.0  # a real correction, in a few linearisations
+    np.testing.assert_allclose(prior, stereo + window, rtol=0, atol=1e-6 * scale)
