@@ -9,18 +9,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from cvslam_cli.config import load_config
 from cvslam_cli.estimation.linearisation import too_uncertain
 from cvslam_cli.geometry.rotations import interpolate_poses
-from cvslam_cli.sim.scenario import load_scenario
-from cvslam_cli.sim.stage import run as simulate
 from tests.scenarios import (
     MC_FILTER_OVERRIDES,
     blackout,
     ekf_on_simulation,
-    monte_carlo_uav_scenario,
+    simulate_loop_uav,
 )
 
 
@@ -40,21 +37,9 @@ DURATION_S = 28.0
 
 @pytest.fixture(scope="module")
 def blackout_sims(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    """The Monte Carlo UAV (`tests/scenarios.py`) on a 60 m diamond, 60 m up, at 20 m/s (a
-    17 s lap), seeds 0 and 1."""
-    root = tmp_path_factory.mktemp("blackout")
-    sc = monte_carlo_uav_scenario(0.03, DURATION_S)
-    v = sc["vehicles"]["uav1"]
-    v["speed_m_s"] = 20.0
-    v["waypoints_nav_m"] = [[0.0, -60.0, -60.0], [60.0, 0.0, -60.0], [0.0, 60.0, -60.0],
-                            [-60.0, 0.0, -60.0]]  # fmt: skip
-    path = root / "scenario.yaml"
-    path.write_text(yaml.safe_dump(sc))
-    out = []
-    for seed in (0, 1):
-        simulate(load_scenario(path, seed=seed), root / f"s{seed}")
-        out.append(root / f"s{seed}")
-    return out
+    """The Monte Carlo UAV on a 60 m diamond (`tests/scenarios.py`, `simulate_loop_uav`),
+    seeds 0 and 1."""
+    return simulate_loop_uav(tmp_path_factory.mktemp("blackout"), DURATION_S, (0, 1))
 
 
 def _after_return(sims: list[Path], *overrides: str) -> tuple[float, float, int]:

@@ -9,7 +9,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import yaml
 
 from cvslam_cli.config import load_config
 from cvslam_cli.estimation.mapping import LandmarkBook
@@ -18,10 +17,8 @@ from cvslam_cli.estimation.reactivation import MAX_REACTIVATION_STD_M, Reactivat
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.vehicle import VehiclePose
 from cvslam_cli.geometry.rotations import interpolate_poses
-from cvslam_cli.sim.scenario import load_scenario
-from cvslam_cli.sim.stage import run as simulate
 from tests.estimation.test_landmark_coordinates import _points, _state, _Vehicle
-from tests.scenarios import MC_FILTER_OVERRIDES, ekf_on_simulation, monte_carlo_uav_scenario
+from tests.scenarios import MC_FILTER_OVERRIDES, ekf_on_simulation, simulate_loop_uav
 
 
 def _mapped(name: str, k: int = 6):
@@ -131,21 +128,9 @@ SHORT_ABSENCE = "fuse.map.reactivation_min_absence_s=5"  # the lap takes 17 s
 
 @pytest.fixture(scope="module")
 def loop_sims(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    """The Monte Carlo UAV (`tests/scenarios.py`) on a 60 m diamond, 60 m up, at 20 m/s:
-    one lap in 17 s, the ground of its start out of view half of it."""
-    root = tmp_path_factory.mktemp("loop")
-    sc = monte_carlo_uav_scenario(0.03, LOOP_DURATION_S)
-    v = sc["vehicles"]["uav1"]
-    v["speed_m_s"] = 20.0
-    v["waypoints_nav_m"] = [[0.0, -60.0, -60.0], [60.0, 0.0, -60.0], [0.0, 60.0, -60.0],
-                            [-60.0, 0.0, -60.0]]  # fmt: skip
-    path = root / "scenario.yaml"
-    path.write_text(yaml.safe_dump(sc))
-    out = []
-    for seed in LOOP_SEEDS:
-        simulate(load_scenario(path, seed=seed), root / f"s{seed}")
-        out.append(root / f"s{seed}")
-    return out
+    """The Monte Carlo UAV on a 60 m diamond (`tests/scenarios.py`, `simulate_loop_uav`): the
+    ground of its start out of view half of each 17 s lap."""
+    return simulate_loop_uav(tmp_path_factory.mktemp("loop"), LOOP_DURATION_S, LOOP_SEEDS)
 
 
 def _loop_runs(sims: list[Path], *overrides: str) -> tuple[np.ndarray, float, int]:
