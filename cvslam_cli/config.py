@@ -178,6 +178,7 @@ class StereoMatchConfig:
     dist_ratio: float = opt(0.7, lo=0.0, hi=1.0, lo_open=True)
     left_right_check: bool = True
     pixel_sigma_px: float = opt(0.3, lo=0.0, lo_open=True)
+    calibrate_disparity_offset: bool = False
 
 
 @dataclass(frozen=True)

@@ -31,22 +31,23 @@ from tqdm import tqdm
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, ExtractConfig
 from cvslam_cli.errors import CvslamError, LogError
+from cvslam_cli.features.disparity_offset import (
+    MIN_DISPARITY_SPREAD,
+    apply_disparity_offset,
+    estimate_disparity_offset,
+)
 from cvslam_cli.features.matching import match_stereo
 from cvslam_cli.features.sift import Keypoints, detect_and_describe, to_grey_u8
 from cvslam_cli.features.windows import auto_z_min_m, undistort_keypoints
 from cvslam_cli.geometry.camera import StereoRig, rig_calibration
-from cvslam_cli.geometry.stereo import (
-    projection_matrices,
-    triangulate,
-    triangulation_covariance,
-)
+from cvslam_cli.geometry.stereo import triangulate_matches
 from cvslam_cli.io.atomic import check_writable, write_text_atomic
 from cvslam_cli.io.features_file import save_features
 from cvslam_cli.io.logs import LogSet, all_log_paths, open_logs
 from cvslam_cli.io.run_layout import EXTRACT_STAGE, RunLayout
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.parallel import STATE, ordered_map
-from cvslam_cli.records.features import FeatureSetBuilder
+from cvslam_cli.records.features import FeatureSet, FeatureSetBuilder
 from cvslam_cli.records.log import StereoFrame
 
 log = logging.getLogger("cvslam")
@@ -127,14 +128,9 @@ def process_frame(
     m = match_stereo(uvl, kl.desc, uvr, kr.desc, rig, cfg.stereo)
     t2 = time.perf_counter()
     _, max_range = stereo_limits(rig, cfg)
-    M_l, M_r = projection_matrices(rig)
-    ul, ur = uvl[m.left].astype(float), uvr[m.right].astype(float)
-    p_cam = triangulate(M_l, M_r, ul, ur) if m.left.size else np.zeros((0, 3))
-    # the point must be in front of both cameras and within range
-    T_rl = np.linalg.inv(rig.T_left_right)
-    z_right = p_cam @ T_rl[2, :3] + T_rl[2, 3]
-    keep = (p_cam[:, 2] > 0) & (z_right > 0) & (np.linalg.norm(p_cam, axis=1) <= max_range)
-    cov = triangulation_covariance(M_l, M_r, ul[keep], ur[keep], cfg.stereo.pixel_sigma_px)
+    p_cam, cov, keep = triangulate_matches(
+        rig, uvl[m.left], uvr[m.right], max_range, cfg.stereo.pixel_sigma_px
+    )
     t3 = time.perf_counter()
     matches = {
         "left": m.left[keep],
@@ -295,6 +291,55 @@ def _extract(
     return _Extracted(builders, rows, started, time.perf_counter() - t_start)
 
 
+def _calibrated(
+    vehicle: str,
+    fs: FeatureSet,
+    rig: StereoRig,
+    cfg: ExtractConfig,
+    rows: list[dict[str, Any]],
+) -> tuple[FeatureSet, dict[str, Any]]:
+    """`fs` with its rig's disparity offset estimated and, when the frames determine it,
+    corrected (`disparity_offset.py`); the stats rows' point counts follow. The estimate for
+    the feature file's provenance."""
+    est = estimate_disparity_offset(fs, rig)
+    if est is None:
+        log.info(
+            "extract %s: disparity offset not estimated (%s)",
+            vehicle,
+            "the rig is not rectified" if not rig.rectified else "too few re-found points",
+        )
+        return fs, {"applied_px": 0.0}
+    record = {"applied_px": 0.0, **asdict(est)}
+    if not est.determined:
+        log.info(
+            "extract %s: disparity offset not determined (the points' disparities spread "
+            "%.2f of their mean, below %.2f: an offset and a scale look alike); the rig is "
+            "left as calibrated",
+            vehicle,
+            est.disparity_spread,
+            MIN_DISPARITY_SPREAD,
+        )
+        return fs, record
+    fs, per_frame = apply_disparity_offset(
+        fs, est.offset_px, stereo_limits(rig, cfg)[1], cfg.stereo.pixel_sigma_px
+    )
+    for row, n in zip(rows, per_frame, strict=True):
+        row["points"] = int(n)
+    log.info(
+        "extract %s: disparity offset %+.3f +- %.3f px (%d frame pairs, %d points): stereo "
+        "depth at 25 m was %+.1f %% off; corrected (right camera cx %.3f -> %.3f px)",
+        vehicle,
+        est.offset_px,
+        est.sigma_px,
+        est.pairs,
+        est.points,
+        100 * est.depth_error(25.0, rig),
+        rig.right.cx,
+        fs.rig.K[1, 0, 2],
+    )
+    return fs, record | {"applied_px": est.offset_px}
+
+
 def _vehicle_extract(
     r: list[dict[str, Any]], unpaired: tuple[int, int], frame_s: float
 ) -> VehicleExtract:
@@ -358,7 +403,10 @@ def run(
             "inputs": layout.relative_inputs(plan.inputs),
             "config": plan.sections["extract"],
         }
-        save_features(done.builders[v].build(), layout.feature_file(v), meta)
+        fs = done.builders[v].build()
+        if cfg.extract.stereo.calibrate_disparity_offset:
+            fs, meta["disparity_offset"] = _calibrated(v, fs, rigs[v], cfg.extract, done.rows[v])
+        save_features(fs, layout.feature_file(v), meta)
         write_text_atomic(layout.feature_stats(v), _csv_text(done.rows[v]))
         vs = logs.stats[v]
         unpaired = (vs.unpaired_left, vs.unpaired_right)

@@ -63,3 +63,19 @@ def triangulation_covariance(
         J[:, :, k] = (plus - minus) / (2 * h)
     var = np.broadcast_to(np.asarray(sigma_px, dtype=float) ** 2, (uv_l.shape[0],))
     return np.einsum("nik,njk->nij", J, J) * var[:, None, None]
+
+
+def triangulate_matches(
+    rig: StereoRig, uv_left: F64, uv_right: F64, max_range_m: float, sigma_px: float
+) -> tuple[F64, F64, np.ndarray]:
+    """(p_cam (N, 3), cov (K, 3, 3) of the kept points, keep (N,) bool) of matched
+    undistorted pixels: a point is kept in front of both cameras and within `max_range_m`
+    of the left one."""
+    M_l, M_r = projection_matrices(rig)
+    ul = np.asarray(uv_left, dtype=float).reshape(-1, 2)
+    ur = np.asarray(uv_right, dtype=float).reshape(-1, 2)
+    p_cam = triangulate(M_l, M_r, ul, ur) if len(ul) else np.zeros((0, 3))
+    T_rl = np.linalg.inv(rig.T_left_right)
+    z_right = p_cam @ T_rl[2, :3] + T_rl[2, 3]
+    keep = (p_cam[:, 2] > 0) & (z_right > 0) & (np.linalg.norm(p_cam, axis=1) <= max_range_m)
+    return p_cam, triangulation_covariance(M_l, M_r, ul[keep], ur[keep], sigma_px), keep
