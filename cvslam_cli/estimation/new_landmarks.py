@@ -40,6 +40,7 @@ from cvslam_cli.estimation.association import (
 from cvslam_cli.estimation.frame import FrameMatches
 from cvslam_cli.estimation.landmark_coordinates import AnchoredInverseDepth
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
+from cvslam_cli.estimation.reanchoring import hand_over
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import Candidates, VehicleInput, VehiclePose, VehicleRun
@@ -137,6 +138,12 @@ class NewLandmarks:
                 key, since_ns = None, frame.stamp_ns
             slots, new_key = _anchored(self.state, vin, pose, p_cam, cov_cam, key)
             self._anchors[run.index] = (new_key, since_ns if new_key == key else frame.stamp_ns)
+            if new_key != key:  # a new clone: the lightest anchors hand theirs over to it
+                hand_over(
+                    self.state, new_key, vin.obs.R_cam_body[0], vin.obs.t_body_cam[0],
+                    vin.obs.K[0], tuple(vin.features.rig.size_px[0]),
+                    self.settings.reanchor_max_landmarks,
+                )  # fmt: skip
         else:
             slots = _cartesian(self.state, vin, pose, p_cam, cov_cam)
         ids = self.book.add(

@@ -461,6 +461,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         new_landmark_priority=m.new_landmark_priority,
         landmark_coordinates=m.landmark_coordinates,
         anchor_span_ns=int(m.anchor_span_s * 1e9),
+        reanchor_max_landmarks=m.reanchor_max_landmarks,
         max_view_angle_rad=float(np.radians(m.max_view_angle_deg)),
         loop_closure_gap_ns=int(m.loop_closure_gap_s * 1e9),
         loop_closure_min_landmarks=m.loop_closure_min_landmarks,

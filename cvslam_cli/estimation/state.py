@@ -376,6 +376,61 @@ class JointState:
         self._layout += 1
         return kept
 
+    def anchor_loads(self) -> I64:
+        """(n_anchors,) how many landmarks refer to each anchor."""
+        used = self._anchor_of[self._anchor_of >= 0]
+        return np.bincount(used, minlength=self.n_anchors).astype(np.int64)
+
+    def anchors_of(self, slots: I64) -> I64:
+        """(k,) keys of the anchors the anchored landmarks `slots` refer to."""
+        return self._anchor_key[self._anchor_of[np.asarray(slots, dtype=np.int64)]]
+
+    def anchor_keys(self) -> I64:
+        """(n_anchors,) every anchor's key, in state order; `anchor_pinned` alike."""
+        return self._anchor_key.copy()
+
+    def anchor_pinned(self) -> np.ndarray:
+        return self._anchor_pinned.copy()
+
+    def reanchor(
+        self, slots: I64, key: int, theta: F64, J_old: F64, J_new: F64, R_cam_body: F64,
+        t_body_cam: F64,
+    ) -> None:  # fmt: skip
+        """Write the anchored landmarks `slots` (k,) relative to the anchor `key` (whose left
+        camera is R_cam_body (3, 3), t_body_cam (3,)): their new numbers theta (k, 3), with
+        d theta / d (their columns, `landmark_columns`) J_old (k, 3, 9) and d theta / d (the
+        new anchor's rows) J_new (k, 3, 6), evaluated at the estimate. A change of
+        coordinates: x and P <- T x, T P T^T with T the identity but for the landmarks' own
+        rows (and the gauge's rows likewise). Anchors left without a landmark (and not
+        pinned) leave the state."""
+        slots = np.asarray(slots, dtype=np.int64)
+        k = len(slots)
+        a_rows = self.anchor_rows(key)
+        if a_rows is None:
+            raise ValueError(f"JointState: anchor {key} is not in the state")
+        own = self._own_rows[slots].ravel()
+        src = np.unique(np.concatenate([self.landmark_columns(slots).ravel(), a_rows]))
+        where = np.searchsorted(src, self.landmark_columns(slots))  # (k, 9) -> src columns
+        A = np.zeros((3 * k, len(src)))
+        a_at = np.searchsorted(src, a_rows)
+        for j in range(k):
+            A[3 * j : 3 * j + 3, where[j]] += J_old[j]
+            A[3 * j : 3 * j + 3, a_at] += J_new[j]
+        P = self.P
+        AP = A @ P[src, :]  # (3k, n): the new rows
+        block = AP[:, src] @ A.T
+        P[own, :] = AP
+        P[:, own] = AP.T
+        P[np.ix_(own, own)] = 0.5 * (block + block.T)
+        if self._N is not None:
+            self._N[own] = A @ self._N[src]
+        self._x[own] = np.asarray(theta, dtype=float).ravel()
+        self._anchor_of[slots] = self._anchor_index(key)
+        self._R_cam_body[slots] = R_cam_body
+        self._t_body_cam[slots] = t_body_cam
+        self._layout += 1
+        self.remove_landmarks(np.zeros(0, dtype=np.int64))
+
     def bounded_states(
         self,
         settings: FilterSettings,
