@@ -386,10 +386,11 @@ class JointState:
         return self._anchor_key[self._anchor_of[np.asarray(slots, dtype=np.int64)]]
 
     def anchor_keys(self) -> I64:
-        """(n_anchors,) every anchor's key, in state order; `anchor_pinned` alike."""
+        """(n_anchors,) every anchor's key, in state order."""
         return self._anchor_key.copy()
 
     def anchor_pinned(self) -> np.ndarray:
+        """(n_anchors,) bool: which anchors are pinned (`add_anchor`), in state order."""
         return self._anchor_pinned.copy()
 
     def reanchor(
