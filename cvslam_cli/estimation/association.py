@@ -143,11 +143,11 @@ def associate(
     z_obs: F64,
     obs_desc: NDArray[np.uint8],
     gate_chi2: float,
-    ratio: float,
+    ratio: float | F64,
     max_distance: float,
 ) -> Association:
     """Match predicted landmarks (k) with a frame's stereo matches z_obs (M, 4) (module
-    docstring)."""
+    docstring); `ratio`: the descriptor ratio, one for all or one per landmark (k,)."""
     k, M = len(pred.z), len(z_obs)
     if k == 0 or M == 0:
         e = np.zeros(0, dtype=np.int64)
@@ -167,7 +167,8 @@ def associate(
     best = np.argmin(D, axis=1)
     best_d = D[np.arange(len(rows)), best]
     second_d = np.partition(D, 1, axis=1)[:, 1] if D.shape[1] >= 2 else np.full(len(rows), np.inf)
-    ok = (best_d < max_distance) & (best_d < ratio * second_d)
+    r = ratio if np.isscalar(ratio) else np.asarray(ratio)[rows].astype(second_d.dtype)
+    ok = (best_d < max_distance) & (best_d < r * second_d)
     lm = rows[ok]
     mi = cols[best[ok]]
     dd = best_d[ok].astype(float)

@@ -79,8 +79,8 @@ class Cooperation:
         pred, P_mm = self.updater.predict(vin, pose, slots[front])
         ids = self.book.slot_ids[slots[front]]
         assoc = associate(
-            pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2, s.descriptor_ratio,
-            s.max_descriptor_distance,
+            pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2,
+            s.other_vehicle_descriptor_ratio, s.max_descriptor_distance,
         )  # fmt: skip
         if not len(assoc.pred_index):
             return

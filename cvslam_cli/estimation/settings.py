@@ -32,6 +32,7 @@ class SlamSettings:
     gate_chi2: float = 18.47  # chi2 with 4 dof at 0.999
     consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
     descriptor_ratio: float = 0.8
+    other_vehicle_descriptor_ratio: float = 0.7  # landmarks the vehicle has not seen yet
     max_descriptor_distance: float = 350.0
     iterate_sigma_ratio: float = 0.05  # linearisation.too_uncertain (0: never iterate)
     max_update_iterations: int = 5  # update.VisualUpdater.iterated_update

@@ -66,7 +66,7 @@ from cvslam_cli.estimation.events import Divergence, DivergenceMonitor, EventLog
 from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
 from cvslam_cli.estimation.landmark_coordinates import coordinates, resolve
 from cvslam_cli.estimation.linearisation import too_uncertain
-from cvslam_cli.estimation.mapping import LandmarkBook
+from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
@@ -264,8 +264,10 @@ class Slam:
         book = self.book
         pred, P_mm = self.updater.predict(run.vin, pose, visible)
         ids_vis = book.slot_ids[visible]
+        new_to_me = book.last_seen_ns[ids_vis, run.index] == NEVER
+        ratio = np.where(new_to_me, s.other_vehicle_descriptor_ratio, s.descriptor_ratio)
         assoc = associate(
-            pred, book.desc[ids_vis], frame.z, frame.desc, s.gate_chi2, s.descriptor_ratio,
+            pred, book.desc[ids_vis], frame.z, frame.desc, s.gate_chi2, ratio,
             s.max_descriptor_distance,
         )  # fmt: skip
         ok = pose_consistent(

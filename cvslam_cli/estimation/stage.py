@@ -448,6 +448,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str) -> SlamSettings:
         gate_chi2=float(chi2.ppf(a.gate_probability, 4)),
         consistency_chi2=float(chi2.ppf(a.consistency_probability, 4)),
         descriptor_ratio=a.descriptor_ratio,
+        other_vehicle_descriptor_ratio=a.other_vehicle_descriptor_ratio,
         max_descriptor_distance=a.max_descriptor_distance,
         iterate_sigma_ratio=a.iterate_sigma_ratio,
         max_update_iterations=a.max_update_iterations,

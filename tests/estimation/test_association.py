@@ -69,6 +69,32 @@ def test_a_match_goes_to_one_landmark_only():
     assert list(a.pred_index) == [1] and list(a.match_index) == [0]
 
 
+def test_the_ratio_test_per_landmark():
+    """Two landmarks, each with two candidates in its window whose descriptor distances are
+    in a ratio of 0.75: accepted at a ratio of 0.8, refused at 0.7, and with one ratio per
+    landmark (the stricter for another vehicle's landmark) each by its own."""
+    z = np.array([[100, 100, 90, 100], [300, 200, 280, 200.0]])
+    desc_lm = np.zeros((2, 128), dtype=np.uint8)
+    desc_lm[1, :] = 200
+    z_obs = np.array(
+        [[100.3, 100, 90.3, 100], [99.7, 100, 89.7, 100], [300.3, 200, 280.3, 200],
+         [299.7, 200, 279.7, 200.0]]
+    )  # fmt: skip
+    d = np.zeros((4, 128), dtype=np.uint8)
+    d[0, :16] = 30  # distance 30 * 4 = 120 from landmark 0
+    d[1, :16] = 40  # 160: ratio 0.75
+    d[2:] = 200
+    d[2, :16] = 170  # 120 from landmark 1
+    d[3, :16] = 160  # 160
+    kw = {"gate_chi2": 18.47, "max_distance": 350.0}
+    both = associate(_prediction(z), desc_lm, z_obs, d, ratio=0.8, **kw)
+    none = associate(_prediction(z), desc_lm, z_obs, d, ratio=0.7, **kw)
+    mixed = associate(_prediction(z), desc_lm, z_obs, d, ratio=np.array([0.8, 0.7]), **kw)
+    assert list(both.pred_index) == [0, 1] and list(both.match_index) == [0, 2]
+    assert len(none.pred_index) == 0
+    assert list(mixed.pred_index) == [0] and list(mixed.match_index) == [0]
+
+
 def test_spread_order_visits_every_cell_before_repeating():
     uv = np.column_stack([RNG.uniform(0, 400, 200), RNG.uniform(0, 400, 200)])
     prio = RNG.uniform(size=200)
