@@ -132,25 +132,31 @@ def monte_carlo_uav_scenario(outlier_fraction: float, duration_s: float) -> dict
     }
 
 
-def simulate_loop_uav(root: Path, duration_s: float, seeds: Any) -> list[Path]:
-    """The Monte Carlo UAV (`monte_carlo_uav_scenario`, 3 % wrong matches) on a 60 m
-    diamond, 60 m up, at 20 m/s (one lap in 17 s, the ground of its start out of view half
-    of it), simulated for `duration_s` with each of `seeds` into `root`/s<seed>."""
+def simulate_seeds(scenario: dict[str, Any], root: Path, seeds: Any) -> list[Path]:
+    """The scenario mapping `scenario` (written to `root`/scenario.yaml) simulated with each
+    of `seeds` into `root`/s<seed>; those folders."""
     from cvslam_cli.sim.scenario import load_scenario
     from cvslam_cli.sim.stage import run as simulate
 
-    sc = monte_carlo_uav_scenario(0.03, duration_s)
-    v = sc["vehicles"][VEHICLE]
-    v["speed_m_s"] = 20.0
-    v["waypoints_nav_m"] = [[0.0, -60.0, -60.0], [60.0, 0.0, -60.0], [0.0, 60.0, -60.0],
-                            [-60.0, 0.0, -60.0]]  # fmt: skip
     path = root / "scenario.yaml"
-    path.write_text(yaml.safe_dump(sc))
+    path.write_text(yaml.safe_dump(scenario))
     out = []
     for seed in seeds:
         simulate(load_scenario(path, seed=seed), root / f"s{seed}")
         out.append(root / f"s{seed}")
     return out
+
+
+def simulate_loop_uav(root: Path, duration_s: float, seeds: Any) -> list[Path]:
+    """The Monte Carlo UAV (`monte_carlo_uav_scenario`, 3 % wrong matches) on a 60 m
+    diamond, 60 m up, at 20 m/s (one lap in 17 s, the ground of its start out of view half
+    of it), simulated for `duration_s` with each of `seeds` into `root`/s<seed>."""
+    sc = monte_carlo_uav_scenario(0.03, duration_s)
+    v = sc["vehicles"][VEHICLE]
+    v["speed_m_s"] = 20.0
+    v["waypoints_nav_m"] = [[0.0, -60.0, -60.0], [60.0, 0.0, -60.0], [0.0, 60.0, -60.0],
+                            [-60.0, 0.0, -60.0]]  # fmt: skip
+    return simulate_seeds(sc, root, seeds)
 
 
 def ekf_on_simulation(

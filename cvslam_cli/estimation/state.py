@@ -410,8 +410,9 @@ class JointState:
         if a_rows is None:
             raise ValueError(f"JointState: anchor {key} is not in the state")
         own = self._own_rows[slots].ravel()
-        src = np.unique(np.concatenate([self.landmark_columns(slots).ravel(), a_rows]))
-        where = np.searchsorted(src, self.landmark_columns(slots))  # (k, 9) -> src columns
+        columns = self.landmark_columns(slots)  # (k, 9)
+        src = np.unique(np.concatenate([columns.ravel(), a_rows]))
+        where = np.searchsorted(src, columns)  # -> src columns
         A = np.zeros((3 * k, len(src)))
         a_at = np.searchsorted(src, a_rows)
         for j in range(k):

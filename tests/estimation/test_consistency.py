@@ -11,14 +11,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from scipy.stats import chi2
 
 from cvslam_cli.config import load_config
 from cvslam_cli.geometry.rotations import interpolate_poses, matrix_to_euler_zyx
-from cvslam_cli.sim.scenario import load_scenario
-from cvslam_cli.sim.stage import run as simulate
-from tests.scenarios import MC_FILTER_OVERRIDES, ekf_on_simulation, monte_carlo_uav_scenario
+from tests.scenarios import (
+    MC_FILTER_OVERRIDES,
+    ekf_on_simulation,
+    monte_carlo_uav_scenario,
+    simulate_seeds,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 SEEDS = range(6)
@@ -27,14 +29,9 @@ DURATION_S = 10.0
 
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    root = tmp_path_factory.mktemp("mc")
-    path = root / "scenario.yaml"
-    path.write_text(yaml.safe_dump(monte_carlo_uav_scenario(0.03, DURATION_S)))
-    out = []
-    for seed in SEEDS:
-        simulate(load_scenario(path, seed=seed), root / f"s{seed}")
-        out.append(root / f"s{seed}")
-    return out
+    return simulate_seeds(
+        monte_carlo_uav_scenario(0.03, DURATION_S), tmp_path_factory.mktemp("mc"), SEEDS
+    )
 
 
 def _nees(
