@@ -264,7 +264,7 @@ class InitialConfig:
 class AssociationConfig:
     """Data association of stereo matches with mapped landmarks."""
 
-    pixel_sigma_px: float = opt(0.5, lo=0.0, lo_open=True)
+    pixel_sigma_px: Literal["auto"] | float = opt(0.5, lo=0.0, lo_open=True)
     gate_probability: float = opt(0.999, lo=0.5, hi=1.0, lo_open=True)
     consistency_probability: float = opt(0.99, lo=0.5, hi=1.0, lo_open=True)
     descriptor_ratio: float = opt(0.8, lo=0.0, hi=1.0, lo_open=True)
@@ -473,14 +473,14 @@ class Config:
 # --------------------------------------------------------------------------- building
 
 
-def _type_name(tp: Any) -> str:
+def _type_name(tp: Any, meta: Mapping[str, Any] | None = None) -> str:
+    """What a value of type `tp` is, in words; with a field's `meta`, a number's range."""
     origin = typing.get_origin(tp)
     if origin is Literal:
-        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
-    if tp is float:
-        return "a number"
-    if tp is int:
-        return "an integer"
+        args = typing.get_args(tp)
+        return repr(args[0]) if len(args) == 1 else "one of " + ", ".join(repr(a) for a in args)
+    if tp in (int, float):
+        return (("a number" if tp is float else "an integer") + _range(meta or {})).rstrip()
     if tp is bool:
         return "true or false"
     if tp is str:
@@ -496,6 +496,17 @@ def _type_name(tp: Any) -> str:
     return str(tp)
 
 
+def _range(meta: Mapping[str, Any]) -> str:
+    """A number field's range in words (" > 0", " >= 0 and <= 1"), "" without one."""
+    lo, hi = meta.get("lo"), meta.get("hi")
+    out = ""
+    if lo is not None:
+        out += f" {'>' if meta.get('lo_open') else '>='} {lo}"
+    if hi is not None:
+        out += f" <= {hi}" if lo is None else f" and <= {hi}"
+    return out
+
+
 def _fail(source: str, path: str, expected: str, got: Any) -> typing.NoReturn:
     shown = "nothing" if got is None else repr(got)
     if len(shown) > 60:
@@ -509,8 +520,15 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
         args = typing.get_args(tp)
         if raw is None and type(None) in args:
             return None
-        (inner,) = [a for a in args if a is not type(None)]
-        return _convert(inner, raw, path, source, meta)
+        inner = [a for a in args if a is not type(None)]
+        if len(inner) == 1:
+            return _convert(inner[0], raw, path, source, meta)
+        for alternative in inner:  # e.g. Literal["auto"] | float: the first that fits
+            try:
+                return _convert(alternative, raw, path, source, meta)
+            except ConfigError:
+                pass
+        _fail(source, path, " or ".join(_type_name(a, meta) for a in inner), raw)
     if dataclasses.is_dataclass(tp):
         if not isinstance(raw, Mapping):
             _fail(source, path, "a mapping", raw)
@@ -550,11 +568,7 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
         return raw
     if tp in (int, float):
         lo, hi = meta.get("lo"), meta.get("hi")
-        expected = _type_name(tp)
-        if lo is not None:
-            expected += f" {'>' if meta.get('lo_open') else '>='} {lo}"
-        if hi is not None:
-            expected += f" <= {hi}" if lo is None else f" and <= {hi}"
+        expected = _type_name(tp, meta)
         ok = isinstance(raw, int) if tp is int else isinstance(raw, (int, float))
         if not ok or isinstance(raw, bool) or (tp is float and not math.isfinite(raw)):
             _fail(source, path, expected.replace("a ", "a finite ", 1) if ok else expected, raw)

@@ -179,7 +179,7 @@ def ekf_on_simulation(
     logs = LogSet([McapLogSource(sim_dir / "uav1.mcap")], cfg.logs)
     inputs, truth = stage.build_inputs(cfg, fs, logs)
     with threadpool_limits(limits=1, user_api="blas"):
-        res = Slam(inputs, stage.slam_settings(cfg.fuse, "ekf")).run()
+        res = Slam(inputs, stage.settings_for(cfg.fuse, "ekf", inputs)).run()
     return res, truth["uav1"]
 
 

@@ -97,6 +97,15 @@ def test_later_sources_override_earlier(tmp_path):
             "c.yaml: logs.vehicle_defaults.rig.left.distortion[1]: expected a number, got 'x'",
         ),
         ("logs: {tf_static_topic: true}\n", "c.yaml: logs.tf_static_topic: expected a string"),
+        (
+            "fuse: {association: {pixel_sigma_px: -1}}\n",
+            "c.yaml: fuse.association.pixel_sigma_px: expected 'auto' or a number > 0.0, got -1",
+        ),
+        (
+            "fuse: {association: {pixel_sigma_px: measured}}\n",
+            "c.yaml: fuse.association.pixel_sigma_px: expected 'auto' or a number > 0.0, got "
+            "'measured'",
+        ),
         ("- just\n- a list\n", "c.yaml: expected a YAML mapping (a config file), got list"),
         ("logs: {a: [1, 2\n", "c.yaml: not valid YAML"),
     ],
@@ -172,3 +181,14 @@ def test_vehicle_names_must_be_safe_file_names(name, why):
     with pytest.raises(ConfigError, match=rf"logs.vehicles.{re.escape(name[:20])}.*{why}"):
         load_config(overrides=[f"logs.vehicles.{name}.kind=uav"])
     assert load_config(overrides=["logs.vehicles.uav-1.kind=uav"]).logs.vehicles["uav-1"]
+
+
+def test_a_value_of_several_kinds_takes_the_first_that_fits():
+    """fuse.association.pixel_sigma_px: 'auto' or a number (the default, 0.5)."""
+    assert load_config().fuse.association.pixel_sigma_px == 0.5
+    cfg = load_config(overrides=["fuse.association.pixel_sigma_px=auto"])
+    assert cfg.fuse.association.pixel_sigma_px == "auto"
+    cfg = load_config(overrides=["fuse.association.pixel_sigma_px=0.4"])
+    assert cfg.fuse.association.pixel_sigma_px == 0.4
+    cfg = load_config(overrides=["fuse.association.pixel_sigma_px=1"])
+    assert cfg.fuse.association.pixel_sigma_px == 1.0

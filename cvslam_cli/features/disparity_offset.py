@@ -13,10 +13,11 @@ motion. (On the real KITTI clip b, whose stereo depth and ground truth "disagree
 
 The estimate: consecutive frame pairs (at most `max_pairs`, spread over the log); in each,
 the stereo points of the earlier frame re-found in the later one by descriptor (ratio test),
-the pair's motion from PnP with RANSAC (inliers and a starting point), then one robust least
-squares over every pair's motion and d0 together, on the later frame's (u, v, d) as
-predicted from the earlier frame's (u, v, d). Its standard deviation is the Gauss-Newton
-marginal of d0 scaled by the residuals' robust scale: the statistical uncertainty only.
+the pair's motion from PnP with RANSAC (inliers and a starting point; `frame_pairs.py`),
+then one robust least squares over every pair's motion and d0 together, on the later
+frame's (u, v, d) as predicted from the earlier frame's (u, v, d). Its standard deviation is
+the Gauss-Newton marginal of d0 scaled by the residuals' robust scale: the statistical
+uncertainty only.
 """
 
 from __future__ import annotations
@@ -28,21 +29,20 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
-from scipy.spatial.transform import Rotation
 
+from cvslam_cli.features.frame_pairs import (
+    RectifiedIntrinsics,
+    moved,
+    pair_ks,
+    pnp_inliers,
+    predicted_uvd,
+    refound,
+)
 from cvslam_cli.geometry.camera import StereoRig, stereo_rig
 from cvslam_cli.geometry.stereo import triangulate_matches
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.features import FeatureSet
 
-# A frame pair counts with at least this many PnP inliers.
-MIN_PAIR_POINTS = 12
-# Points nearer to zero disparity than this (px) say little about the offset and are
-# unstable under it.
-MIN_DISPARITY_PX = 2.0
-# Re-found points: descriptor ratio test; PnP's inlier threshold (px).
-DESCRIPTOR_RATIO = 0.8
-PNP_INLIER_PX = 3.0
 # Huber threshold of the joint solution (px); its evaluations (its Jacobian costs 7).
 HUBER_PX = 1.0
 MAX_EVALUATIONS = 300
@@ -85,23 +85,6 @@ class DisparityOffset:
 
 
 @dataclass(frozen=True)
-class _Intrinsics:
-    f: float
-    fy: float
-    cx: float
-    cy: float
-    fb: float
-    c_lr: float  # c_l - c_r: the calibrated disparity at infinity
-
-    @classmethod
-    def of(cls, rig: StereoRig) -> _Intrinsics:
-        f = rig.left.fx
-        return cls(
-            f, rig.left.fy, rig.left.cx, rig.left.cy, f * rig.baseline_m, rig.left.cx - rig.right.cx
-        )
-
-
-@dataclass(frozen=True)
 class _Pairs:
     """Re-found points, one row each: the pair's index, (u, v, d) in the earlier frame
     (uvd0, (n, 3)) and in the later one (uvd1, (n, 3)); per pair a starting motion
@@ -113,70 +96,11 @@ class _Pairs:
     motion0: F64
 
 
-def _frame(fs: FeatureSet, k: int) -> tuple[F64, np.ndarray]:
-    sl = fs.frame_matches(k)
-    left = fs.match_left[sl]
-    uvd = np.column_stack(
-        [fs.left_uv_px[left].astype(float), fs.match_disparity_px[sl].astype(float)]
-    )
-    return uvd, fs.left_desc[left].astype(np.float32)
-
-
-def _points(uvd: F64, K: _Intrinsics, offset: float | F64 = 0.0) -> F64:
-    """(n, 3) points in the left camera from (u, v, d) with the disparity offset removed."""
-    z = K.fb / (uvd[:, 2] - K.c_lr - offset)
-    return np.column_stack([(uvd[:, 0] - K.cx) * z / K.f, (uvd[:, 1] - K.cy) * z / K.fy, z])
-
-
-def _candidates(
-    fs: FeatureSet, k: int, K: _Intrinsics, matcher: cv2.BFMatcher
-) -> tuple[F64, F64] | None:
-    """(uvd0, uvd1): the stereo points of frame k re-found in frame k + 1 by descriptor."""
-    uvd0, desc0 = _frame(fs, k)
-    uvd1, desc1 = _frame(fs, k + 1)
-    if len(uvd0) < MIN_PAIR_POINTS or len(uvd1) < MIN_PAIR_POINTS:
-        return None
-    found = [
-        (m[0].queryIdx, m[0].trainIdx)
-        for m in matcher.knnMatch(desc0, desc1, k=2)
-        if len(m) == 2 and m[0].distance < DESCRIPTOR_RATIO * m[1].distance
-    ]
-    if len(found) < MIN_PAIR_POINTS:
-        return None
-    i, j = np.array(found).T
-    near = (uvd0[i, 2] - K.c_lr > MIN_DISPARITY_PX) & (uvd1[j, 2] - K.c_lr > MIN_DISPARITY_PX)
-    if near.sum() < MIN_PAIR_POINTS:
-        return None
-    return uvd0[i[near]], uvd1[j[near]]
-
-
-def _inliers(uvd0: F64, uvd1: F64, K: _Intrinsics, offset: float) -> tuple[I64, F64] | None:
-    """(rows, motion) of one pair's PnP inliers and its motion, with the earlier frame's
-    points at the depths `offset` gives them (so that the selection does not favour the
-    offset it starts from)."""
-    A = np.array([[K.f, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]])
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        _points(uvd0, K, offset), uvd1[:, :2], A, None, reprojectionError=PNP_INLIER_PX,
-        iterationsCount=200, confidence=0.999, flags=cv2.SOLVEPNP_EPNP,
-    )  # fmt: skip
-    if not ok or inliers is None or len(inliers) < MIN_PAIR_POINTS:
-        return None
-    return inliers[:, 0], np.concatenate([rvec.ravel(), tvec.ravel()])
-
-
-def _residuals(params: F64, p: _Pairs, K: _Intrinsics) -> F64:
+def _residuals(params: F64, p: _Pairs, K: RectifiedIntrinsics) -> F64:
     """Later frame's (u, v, d) predicted minus measured, (3n,) in px."""
     offset, motion = params[0], params[1:].reshape(-1, 6)[p.pair]
-    X = _points(p.uvd0, K, offset)
-    Y = np.einsum("nij,nj->ni", Rotation.from_rotvec(motion[:, :3]).as_matrix(), X) + motion[:, 3:]
-    z = Y[:, 2]
-    return np.concatenate(
-        [
-            K.f * Y[:, 0] / z + K.cx - p.uvd1[:, 0],
-            K.fy * Y[:, 1] / z + K.cy - p.uvd1[:, 1],
-            K.fb / z + K.c_lr + offset - p.uvd1[:, 2],
-        ]
-    )
+    r = predicted_uvd(moved(p.uvd0, motion, K, offset), K, offset) - p.uvd1
+    return r.T.ravel()
 
 
 def _sparsity(p: _Pairs, n_pairs: int) -> csr_matrix:
@@ -195,12 +119,10 @@ def estimate_disparity_offset(
     None when the rig is not rectified or fewer than two frame pairs have enough points."""
     if not rig.rectified or fs.n_frames < 2:
         return None
-    K = _Intrinsics.of(rig)
+    K = RectifiedIntrinsics.of(rig)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
-    ks = np.unique(
-        np.linspace(0, fs.n_frames - 2, min(max_pairs, fs.n_frames - 1)).round().astype(int)
-    )
-    candidates = [c for c in (_candidates(fs, int(k), K, matcher) for k in ks) if c is not None]
+    ks = pair_ks(fs, max_pairs)
+    candidates = [c for c in (refound(fs, int(k), K, matcher) for k in ks) if c is not None]
     offset, result = 0.0, None
     for _ in range(MAX_ROUNDS):
         solved = _solve(candidates, K, offset)
@@ -213,12 +135,12 @@ def estimate_disparity_offset(
 
 
 def _solve(
-    candidates: list[tuple[F64, F64]], K: _Intrinsics, offset: float
+    candidates: list[tuple[F64, F64]], K: RectifiedIntrinsics, offset: float
 ) -> DisparityOffset | None:
     """One round: each pair's inliers at `offset`, then every motion and the offset."""
     found = []
     for uvd0, uvd1 in candidates:
-        inl = _inliers(uvd0, uvd1, K, offset)
+        inl = pnp_inliers(uvd0, uvd1, K, offset)
         if inl is not None:
             found.append((uvd0[inl[0]], uvd1[inl[0]], inl[1]))
     if len(found) < 2:

@@ -28,7 +28,7 @@ from tqdm import tqdm
 from cvslam_cli import __version__
 from cvslam_cli.config import Config
 from cvslam_cli.errors import CvslamError
-from cvslam_cli.estimation.stage import build_inputs
+from cvslam_cli.estimation.stage import FALLBACK_PIXEL_SIGMA_PX, build_inputs
 from cvslam_cli.geometry.rotations import interpolate_positions, matrix_to_quat_xyzw
 from cvslam_cli.io.atomic import atomic_dir, check_writable
 from cvslam_cli.io.features_file import load_features
@@ -111,11 +111,13 @@ def settings_of(cfg: Config, metas: Sequence[dict[str, Any]]) -> RefineSettings:
     if sigma == 0:
         known = feature_pixel_sigma(metas)
         if known is None:
-            sigma = cfg.fuse.association.pixel_sigma_px
+            fused = cfg.fuse.association.pixel_sigma_px
+            sigma = FALLBACK_PIXEL_SIGMA_PX if fused == "auto" else fused
             log.warning(
-                "refine: the feature files do not say their pixel noise; using "
-                "fuse.association.pixel_sigma_px = %g px (refine.pixel_sigma_px to set it)",
+                "refine: the feature files do not say their pixel noise; using %g px "
+                "(fuse.association.pixel_sigma_px %s; refine.pixel_sigma_px to set it)",
                 sigma,
+                fused,
             )
         else:
             sigma = known

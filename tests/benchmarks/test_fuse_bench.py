@@ -86,6 +86,9 @@ L_VALUES = (50, 100, 200, 400, 700, 1000)
 SCENARIO = SCENARIO_DIR / "uav2_paper.yaml"
 SIM_SETS = ["mode=landmarks"]
 VEHICLE = "uav1"
+# settings where the pixel noise does not enter (the filter's kind and bound, the map's
+# bound): no frames are measured for it
+NO_PIXELS = 0.5
 ALTITUDE_M = 100.0
 SPEED_M_S = 11.5
 FRAME_DT_S = 0.1  # 10 Hz camera
@@ -295,7 +298,7 @@ def _build_case(cfg: Config, L: int, obs: StereoObservationModel) -> Case:
         [(H_pose @ model.pose_jacobian(x_v)).reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], 1
     )
     cols = np.concatenate([v_idx, st.landmark_index(slots).reshape(-1)])
-    sigma = cfg.fuse.association.pixel_sigma_px
+    sigma = NO_PIXELS  # the synthetic observations' noise
     h = z.reshape(-1)
     y = h + sigma * rng.standard_normal(len(h))
     R = np.eye(4 * k) * sigma**2
@@ -334,7 +337,7 @@ def cases(cfg: Config) -> dict[int, Case]:
 
 
 def _settings(cfg: Config, kind: str, bound: str = "vehicle") -> FilterSettings:
-    return replace(stage.slam_settings(cfg.fuse, kind).filter, bound=bound)
+    return replace(stage.slam_settings(cfg.fuse, kind, NO_PIXELS).filter, bound=bound)
 
 
 # ----------------------------------------------------------------------------- 1. update
@@ -548,7 +551,7 @@ def _fresh_run(sim: Path, spec: RunSpec) -> RunResult:
     fs = {v: load_features(sim / "features" / f"{v}.npz")[0] for v in spec.vehicles}
     logs = LogSet([McapLogSource(sim / f"{v}.mcap") for v in spec.vehicles], cfg.logs)
     inputs, truth = stage.build_inputs(cfg, fs, logs)
-    settings = stage.slam_settings(cfg.fuse, spec.kind)
+    settings = stage.settings_for(cfg.fuse, spec.kind, inputs)
     settings = replace(
         settings,
         max_landmarks=spec.max_landmarks or settings.max_landmarks,

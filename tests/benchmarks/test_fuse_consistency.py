@@ -135,7 +135,7 @@ def one_run(seed: int) -> RunResult:
         gt, R_gt, _ = interpolate_poses(g.stamps_ns, g.p_nav_m, g.q_nav_body_xyzw, stamps)
         euler_gt = np.array([matrix_to_euler_zyx(R) for R in R_gt])
         for kind in STATE["filters"]:
-            res = Slam(inputs, stage.slam_settings(cfg.fuse, kind)).run()
+            res = Slam(inputs, stage.settings_for(cfg.fuse, kind, inputs)).run()
             tr = res.tracks[VEHICLE]
             e = np.full((len(stamps), 3), np.nan)
             P = np.full((len(stamps), 3, 3), np.nan)

@@ -105,6 +105,9 @@ WORKERS = int(os.environ.get("CVSLAM_COOP_WORKERS", str(min(2, os.cpu_count() or
 SEEDS = list(range(1, N_RUNS + 1))
 SCENARIOS = {2: "uav2_paper", 4: "uav4_team"}  # vehicles -> scenario
 SIM_SETS = ("mode=landmarks",)
+# settings where the pixel noise does not enter (the filter's kind and bound, the map's
+# bound): no frames are measured for it
+NO_PIXELS = 0.5
 MODES = ("coop", "single", "deadreckoning")
 SPEED_TARGET_2 = 5.0  # x real time, 2 UAVs cooperative (issue 6)
 TIME_MARKS_S = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
@@ -138,7 +141,7 @@ def _frames(vin: VehicleInput) -> NDArray[np.int64]:
 
 def default_bound(cfg: Config, n_vehicles: int) -> int:
     """Landmarks in the state at most with the config's defaults (as `Slam`)."""
-    return landmark_bound(stage.slam_settings(cfg.fuse, "hinf"), n_vehicles)
+    return landmark_bound(stage.slam_settings(cfg.fuse, "hinf", NO_PIXELS), n_vehicles)
 
 
 def shared_bound(total: int) -> Config:
@@ -222,7 +225,7 @@ def _run_filter(
 ) -> tuple[list[SlamResult], list[str], float]:
     """(results, crashes, wall s): one filter over all `inputs`, or one per vehicle. A filter
     that raises is recorded (with its vehicles) and the other runs go on."""
-    settings = stage.slam_settings(cfg.fuse, "hinf")
+    settings = stage.settings_for(cfg.fuse, "hinf", inputs)
     groups = [[v] for v in inputs] if single else [inputs]
     results, crashed = [], []
     t0 = time.perf_counter()
@@ -592,7 +595,7 @@ def speed_run(spec: SpeedSpec) -> SpeedRow:
     with threadpool_limits(limits=1, user_api="blas"):
         inputs, truth = _inputs(cfg, Path(spec.sim))
         chosen = [v for v in inputs if v.name in spec.vehicles]
-        settings = stage.slam_settings(cfg.fuse, "hinf")
+        settings = stage.settings_for(cfg.fuse, "hinf", chosen)
         t0 = time.perf_counter()
         res = Slam(chosen, settings).run()
         wall = time.perf_counter() - t0

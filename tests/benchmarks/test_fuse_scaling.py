@@ -114,7 +114,7 @@ def run_team(spec: Spec) -> Row:
         inputs, truth = _inputs(cfg, Path(spec.sim))
         names = [f"uav{i + 1}" for i in range(spec.n_vehicles)]
         chosen = [v for v in inputs if v.name in names]
-        settings = stage.slam_settings(cfg.fuse, "hinf")
+        settings = stage.settings_for(cfg.fuse, "hinf", chosen)
         t0, c0 = time.perf_counter(), time.process_time()
         res = Slam(chosen, settings).run()
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0

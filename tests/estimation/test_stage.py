@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -27,6 +28,7 @@ from cvslam_cli.io.map_file import load_map
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum
+from tests.features.synthetic_frames import frames_of
 from tests.scenarios import small_uav_scenario
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -87,6 +89,7 @@ def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cv
     assert {"map.csv", "map.ply", "timeline.csv", "events.csv", "result.mcap"} <= names
     assert not (run / "fuse.partial").exists()
     summary = yaml.safe_load((run / "run.yaml").read_text())["stages"]["fuse"]["summary"]
+    assert summary["pixel_sigma_px"] == {"value": 0.5, "source": "configured"}
     for v in ("uav1", "uav2"):
         s = summary["vehicles"][v]
         assert s["model"] == "ins"
@@ -177,7 +180,7 @@ def test_wrong_matches_never_become_landmarks_and_associations_are_right(sim_run
     confirmation keeps them out of the map; the filter stays consistent in NIS."""
     cfg, inputs, truth = _inputs(sim_run)
     with threadpool_limits(limits=1, user_api="blas"):
-        res = Slam(inputs[:1], stage.slam_settings(cfg.fuse, "ekf")).run()
+        res = Slam(inputs[:1], stage.settings_for(cfg.fuse, "ekf", inputs[:1])).run()
     assert res.divergence is None
     assert np.sum(res.landmarks.true_id == -2) == 0
     assert np.sum(res.landmarks.true_id >= 0) == len(res.landmarks)
@@ -191,6 +194,27 @@ def test_wrong_matches_never_become_landmarks_and_associations_are_right(sim_run
     e = np.linalg.norm(tr.p_nav_m - gt, axis=1)
     e_dr = np.linalg.norm(dr.p_nav_m - gt, axis=1)
     assert e[-1] < 0.5 * e_dr[-1] and e.max() < 1.5
+
+
+def test_the_pixel_noise_configured_measured_or_assumed(sim_run, caplog):
+    """fuse.association.pixel_sigma_px: a number is used as it is; auto measures it from
+    the vehicles' frames (the simulator's 0.5 px) and says so; frames that measure nothing
+    (one frame each) fall back to FALLBACK_PIXEL_SIGMA_PX and say so."""
+    cfg, inputs, _ = _inputs(sim_run, "fuse.association.pixel_sigma_px=0.7")
+    assert stage.pixel_sigma(cfg.fuse, inputs) == stage.PixelSigma(0.7, "configured")
+    cfg, inputs, _ = _inputs(sim_run, "fuse.association.pixel_sigma_px=auto")
+    with caplog.at_level("INFO", logger="cvslam.fuse"):
+        measured = stage.pixel_sigma(cfg.fuse, inputs)
+    assert "pixel noise 0.5" in caplog.text or "pixel noise 0.4" in caplog.text
+    assert "measured from" in caplog.text
+    assert measured.source == "measured" and measured.noise is not None
+    assert measured.sigma_px == pytest.approx(0.5, rel=0.08)
+    assert measured.noise.pairs > 100  # both vehicles' frames
+    one_frame = [SimpleNamespace(features=frames_of(0.0, ahead=True, frames=1)[0])]
+    with caplog.at_level("WARNING", logger="cvslam.fuse"):
+        assumed = stage.pixel_sigma(cfg.fuse, one_frame)  # type: ignore[arg-type]
+    assert assumed == stage.PixelSigma(stage.FALLBACK_PIXEL_SIGMA_PX, "fallback")
+    assert "measured no pixel noise" in caplog.text and "set it to a number" in caplog.text
 
 
 def test_a_diverging_filter_is_reported_with_its_time(sim_run, tmp_path, cvslam):

@@ -13,82 +13,16 @@ from cvslam_cli.features.disparity_offset import (
     estimate_disparity_offset,
 )
 from cvslam_cli.features.stage import run
-from cvslam_cli.geometry.camera import CameraModel, StereoRig, rig_calibration, translation_T
 from cvslam_cli.io.features_file import load_features
-from cvslam_cli.records.features import FeatureSet, FeatureSetBuilder
-
-F_PX, CX, CY, BASELINE_M = 700.0, 600.0, 180.0, 0.5
-
-
-def _rig() -> StereoRig:
-    K = np.array([[F_PX, 0, CX], [0, F_PX, CY], [0, 0, 1.0]])
-    return StereoRig(
-        CameraModel(1200, 360, K), CameraModel(1200, 360, K.copy(), T_body_cam=translation_T(0.5))
-    )
-
-
-def _features(
-    offset_px: float, *, ahead: bool, seed: int = 0, frames: int = 16, noise_px: float = 0.3
-) -> tuple[FeatureSet, np.ndarray]:
-    """Stereo frames of random points with every disparity off by `offset_px`: a camera
-    driving forward through a street-like scene (depths 3-120 m, `ahead`) or sliding
-    sideways 60 m above flat ground; unique random descriptors per point. Also the points
-    (N, 3) in the first camera."""
-    rng = np.random.default_rng(seed)
-    n = 3000
-    if ahead:
-        P = np.column_stack(
-            [rng.uniform(-20, 20, n), rng.uniform(-3, 2, n), rng.uniform(3, 120, n)]
-        )
-    else:
-        P = np.column_stack(
-            [rng.uniform(-40, 40, n), rng.uniform(-15, 15 + 2 * frames, n), rng.uniform(59, 61, n)]
-        )
-    desc = rng.integers(0, 255, (n, 128)).astype(np.uint8)
-    builder = FeatureSetBuilder("car", rig_calibration(_rig()))
-    for k in range(frames):
-        Q = P - (np.array([0, 0, 1.2 * k]) if ahead else np.array([0, 2.0 * k, 0]))
-        u_l = F_PX * Q[:, 0] / Q[:, 2] + CX
-        v = F_PX * Q[:, 1] / Q[:, 2] + CY
-        u_r = F_PX * (Q[:, 0] - BASELINE_M) / Q[:, 2] + CX - offset_px
-        seen = np.flatnonzero((Q[:, 2] > 1) & (u_l > 0) & (u_l < 1200) & (v > 0) & (v < 360))
-        seen = seen[:400]
-        m = len(seen)
-        e = rng.normal(0, noise_px, (m, 4))
-        left = np.column_stack([u_l[seen] + e[:, 0], v[seen] + e[:, 1]]).astype(np.float32)
-        right = np.column_stack([u_r[seen] + e[:, 2], v[seen] + e[:, 3]]).astype(np.float32)
-
-        def side(uv: np.ndarray, rows: np.ndarray = seen, count: int = m) -> dict:
-            return {
-                "uv_raw_px": uv,
-                "uv_px": uv,
-                "size_px": np.ones(count, np.float32),
-                "angle_deg": np.zeros(count, np.float32),
-                "response": np.ones(count, np.float32),
-                "octave": np.zeros(count, np.int32),
-                "desc": desc[rows],
-            }
-
-        matches = {
-            "left": np.arange(m),
-            "right": np.arange(m),
-            "disparity_px": (left[:, 0] - right[:, 0]).astype(np.float32),
-            "distance": np.zeros(m, np.float32),
-            "ratio": np.zeros(m, np.float32),
-            "p_cam_m": np.zeros((m, 3)),
-            "cov_cam_m2": np.tile(np.eye(3), (m, 1, 1)),
-            "landmark_id": seen.astype(np.int64),
-        }
-        builder.add_frame(k * 100_000_000, side(left), side(right), matches)
-    return builder.build(), P
+from tests.features.synthetic_frames import CX, frames_of, rig, skewed_rig
 
 
 @pytest.mark.parametrize("offset_px", [0.0, -1.2, 0.5])
 def test_offset_recovered_ahead_of_a_car(offset_px):
     """Points at 3-120 m ahead: the offset is found within 0.05 px and within 4 of its own
     standard deviations (which must not be vacuous: under 0.05 px)."""
-    fs, _ = _features(offset_px, ahead=True)
-    est = estimate_disparity_offset(fs, _rig())
+    fs, _ = frames_of(offset_px, ahead=True)
+    est = estimate_disparity_offset(fs, rig())
     assert est is not None and est.determined
     assert est.pairs == fs.n_frames - 1 and est.points > 3000
     assert abs(est.offset_px - offset_px) < 0.05
@@ -99,23 +33,18 @@ def test_offset_recovered_ahead_of_a_car(offset_px):
 def test_offset_not_determined_over_flat_ground():
     """From above flat ground every disparity is within a few percent of the others: an
     offset and a scale look alike, and the estimate says it is not determined."""
-    fs, _ = _features(-1.0, ahead=False, frames=6)
-    est = estimate_disparity_offset(fs, _rig())
+    fs, _ = frames_of(-1.0, ahead=False, frames=6)
+    est = estimate_disparity_offset(fs, rig())
     assert est is not None
     assert not est.determined
     assert est.disparity_spread < 0.1
 
 
 def test_unrectified_rig_and_too_few_frames_give_no_estimate():
-    fs, _ = _features(0.0, ahead=True, frames=1)
-    assert estimate_disparity_offset(fs, _rig()) is None
-    rig = _rig()
-    turned = np.eye(4)
-    turned[:3, :3] = [[1, 0, 0], [0, np.cos(0.01), -np.sin(0.01)], [0, np.sin(0.01), np.cos(0.01)]]
-    skew = StereoRig(
-        rig.left, CameraModel(1200, 360, rig.right.K, T_body_cam=rig.right.T_body_cam @ turned)
-    )
-    fs, _ = _features(0.0, ahead=True, frames=3)
+    fs, _ = frames_of(0.0, ahead=True, frames=1)
+    assert estimate_disparity_offset(fs, rig()) is None
+    skew = skewed_rig()
+    fs, _ = frames_of(0.0, ahead=True, frames=3)
     assert estimate_disparity_offset(fs, skew) is None
 
 
@@ -123,7 +52,7 @@ def test_applied_offset_restores_the_depths():
     """Triangulated again with the corrected rig, far points land where they are (their
     depth was 10-40 % off at 60-120 m with an offset of -1.2 px); a positive offset larger
     than a point's disparity drops its match, and the frames' offsets follow."""
-    fs, P = _features(-1.2, ahead=True, frames=3, noise_px=0.0)
+    fs, P = frames_of(-1.2, ahead=True, frames=3, noise_px=0.0)
     out, per_frame = apply_disparity_offset(fs, -1.2, max_range_m=400.0, pixel_sigma_px=0.3)
     assert out.rig.K[1, 0, 2] == pytest.approx(CX + 1.2)
     assert np.array_equal(per_frame, np.diff(fs.match_offsets))

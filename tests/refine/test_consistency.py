@@ -102,7 +102,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory):
         dx[:9] = np.random.default_rng(seed).multivariate_normal(np.zeros(9), vin.P0[:9, :9])
         inputs = [dataclasses.replace(vin, x0=vin.x0 + dx)]
         with threadpool_limits(limits=1, user_api="blas"):
-            res = Slam(inputs, stage.slam_settings(cfg.fuse, "ekf")).run()
+            res = Slam(inputs, stage.settings_for(cfg.fuse, "ekf", inputs)).run()
         tr = res.tracks["uav1"]
         table, ids, p0 = exact_observations(
             fs["uav1"], "uav1", tr.stamps_ns, tr.p_nav_m, tr.euler_rad, inputs[0].obs
