@@ -17,9 +17,12 @@ batch did not solve (seen from fewer than two keyframes) with the filter's infla
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numpy as np
 
-from cvslam_cli.records.arrays import I64, U8
+from cvslam_cli.records.arrays import F64, I64, U8
 from cvslam_cli.records.landmark_archive import NEVER_NS, LandmarkArchive
 from cvslam_cli.refine.problem import RefineProblem, RefineResult
 
@@ -53,12 +56,8 @@ def refined_archive(
     vehicles = list(source.vehicles) + [n for n in names if n not in source.vehicles]
     last = np.full((len(source) + len(new), len(vehicles)), NEVER_NS, dtype=np.int64)
     last[: len(source), : len(source.vehicles)] = source.last_seen_ns
-    view = np.zeros((len(new), 3))
-    first = np.zeros(len(new), dtype=np.int64)
-    count = np.zeros(len(new), dtype=np.int64)
-    if len(new):
-        _observed(problem, new, vehicles, res.p_nav_m[new], view, first, count,
-                  last[len(source) :])  # fmt: skip
+    obs = observed(problem, new, res.p_nav_m[new])
+    last[len(source) :, [vehicles.index(n) for n in names]] = obs.last_ns
     tid = np.full(len(new), -1, dtype=np.int64) if true_id is None else true_id[new]
     sessions = source.session if source.session is not None else np.zeros(len(source), np.int64)
     session = int(sessions.max()) if len(source) else 0
@@ -69,10 +68,10 @@ def refined_archive(
         p_nav_m=np.vstack([p, res.p_nav_m[new]]),
         cov_nav_m2=np.concatenate([cov, res.cov[new]]),
         descriptor=np.vstack([source.descriptor, new_desc]),
-        view_dir_sum_nav=np.vstack([source.view_dir_sum_nav, view]),
-        first_seen_ns=np.concatenate([source.first_seen_ns, first]),
+        view_dir_sum_nav=np.vstack([source.view_dir_sum_nav, obs.view]),
+        first_seen_ns=np.concatenate([source.first_seen_ns, obs.first_ns]),
         last_seen_ns=last,
-        n_observations=np.concatenate([source.n_observations, count]),
+        n_observations=np.concatenate([source.n_observations, obs.count]),
         in_state=np.concatenate([source.in_state, np.zeros(len(new), dtype=bool)]),
         evicted_ns=np.concatenate([source.evicted_ns, np.full(len(new), NEVER_NS)]),
         reactivations=np.concatenate([source.reactivations, np.zeros(len(new), dtype=np.int64)]),
@@ -82,26 +81,37 @@ def refined_archive(
     )
 
 
-def _observed(
-    problem: RefineProblem,
-    landmarks: I64,
-    vehicles: list[str],
-    p_nav_m: np.ndarray,
-    view: np.ndarray,
-    first: I64,
-    count: I64,
-    last: I64,
-) -> None:
-    """Fill, for the problem's `landmarks` (k,) at `p_nav_m` (k, 3), the sum of unit vectors
-    to the observing keyframes' positions `view` (k, 3), the first stamp `first` (k,), the
-    observation count `count` (k,) and each vehicle's (columns `vehicles`) last stamp
-    `last` (k, V)."""
+@dataclass(frozen=True, eq=False)
+class Observed:
+    """What the problem's observations say of k of its landmarks: `view` (k, 3) the sum of
+    unit vectors to the observing keyframes' positions, `first_ns` (k,) the first stamp,
+    `count` (k,) the observations, `last_ns` (k, V) each problem vehicle's last stamp
+    (`NEVER_NS`: not observed by it)."""
+
+    view: F64
+    first_ns: I64
+    count: I64
+    last_ns: I64
+
+    def observers(self, names: Sequence[str]) -> list[str]:
+        """Per landmark the observing vehicles (`names`: the problem's), sorted, ";"-joined
+        (map.csv's column)."""
+        seen = self.last_ns != NEVER_NS
+        return [";".join(sorted(n for n, s in zip(names, row, strict=True) if s)) for row in seen]
+
+
+def observed(problem: RefineProblem, landmarks: I64, p_nav_m: F64) -> Observed:
+    """`Observed` for the problem's `landmarks` (k,) at `p_nav_m` (k, 3)."""
+    n = len(landmarks)
+    view = np.zeros((n, 3))
+    count = np.zeros(n, dtype=np.int64)
+    first = np.full(n, np.iinfo(np.int64).max, dtype=np.int64)
+    last = np.full((n, len(problem.vehicles)), NEVER_NS, dtype=np.int64)
     offset = np.cumsum([0] + [len(v.stamps_ns) for v in problem.vehicles])[:-1]
     stamps = np.concatenate([v.stamps_ns for v in problem.vehicles])
     where = np.concatenate([v.T_nav_body[:, :3, 3] for v in problem.vehicles])
-    column = np.array([vehicles.index(v.name) for v in problem.vehicles], dtype=np.int64)
     at = np.full(len(problem.landmark_id), -1, dtype=np.int64)
-    at[landmarks] = np.arange(len(landmarks))
+    at[landmarks] = np.arange(n)
     k = at[problem.obs_landmark]
     sel = k >= 0
     k = k[sel]
@@ -111,6 +121,6 @@ def _observed(
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     np.add.at(view, k, d)
     np.add.at(count, k, 1)
-    first[:] = np.iinfo(np.int64).max
     np.minimum.at(first, k, t)
-    np.maximum.at(last, (k, column[problem.obs_vehicle[sel]]), t)
+    np.maximum.at(last, (k, problem.obs_vehicle[sel]), t)
+    return Observed(view, first, count, last)

@@ -51,7 +51,7 @@ from cvslam_cli.records.poses import PoseTable
 from cvslam_cli.refine import graph
 from cvslam_cli.refine.build import build_problem, reassociation_start
 from cvslam_cli.refine.keyframe_features import keyframe_features
-from cvslam_cli.refine.map_archive import refined_archive
+from cvslam_cli.refine.map_archive import observed, refined_archive
 from cvslam_cli.refine.marginals import IndeterminateError
 from cvslam_cli.refine.problem import RefineProblem, RefineResult, RefineSettings
 from cvslam_cli.refine.reassociation import ReassociationSettings
@@ -178,17 +178,7 @@ def refined_map(
     new = np.flatnonzero(~known)
     if not len(new):
         return out
-    names = [v.name for v in problem.vehicles]
-    stamp = np.concatenate([v.stamps_ns for v in problem.vehicles])
-    offset = np.cumsum([0] + [len(v.stamps_ns) for v in problem.vehicles])[:-1]
-    obs_stamp = stamp[offset[problem.obs_vehicle] + problem.obs_keyframe]
-    observers, n_obs, first, last = [], [], [], []
-    for j in new:
-        sel = problem.obs_landmark == j
-        observers.append(";".join(sorted({names[v] for v in problem.obs_vehicle[sel]})))
-        n_obs.append(int(sel.sum()))
-        first.append(int(obs_stamp[sel].min()))
-        last.append(int(obs_stamp[sel].max()))
+    obs = observed(problem, new, res.p_nav_m[new])
     tid = np.full(len(new), -1, dtype=np.int64) if true_id is None else true_id[new]
     assert out.session is not None  # LandmarkMap fills it
     latest = int(out.session.max()) if len(out.session) else 0  # the new points' session
@@ -196,10 +186,10 @@ def refined_map(
         np.concatenate([out.landmark_id, problem.landmark_id[new]]),
         np.vstack([out.p_nav_m, res.p_nav_m[new]]),
         np.vstack([out.std_m, std_new[new]]),
-        (*out.observers, *observers),
-        np.concatenate([out.n_observations, n_obs]),
-        np.concatenate([out.first_seen_ns, first]),
-        np.concatenate([out.last_seen_ns, last]),
+        (*out.observers, *obs.observers([v.name for v in problem.vehicles])),
+        np.concatenate([out.n_observations, obs.count]),
+        np.concatenate([out.first_seen_ns, obs.first_ns]),
+        np.concatenate([out.last_seen_ns, obs.last_ns.max(axis=1)]),
         np.concatenate([out.in_state, np.zeros(len(new), dtype=bool)]),
         np.concatenate([out.true_id, tid]),
         np.concatenate([out.session, np.full(len(new), latest, dtype=np.int64)]),

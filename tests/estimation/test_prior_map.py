@@ -279,6 +279,11 @@ def test_a_refined_map_is_a_prior_map(worlds, tmp_path, cvslam):
     assert np.all(np.linalg.eigvalsh(refined.cov_nav_m2[new]) > 0)
     assert np.all(refined.descriptor[new].any(axis=1)) and np.all(refined.n_observations[new] >= 2)
     assert set(refined.observers()[new]) == {"uav1"}
+    # map.csv says the same of them: observers, observation counts, first and last times
+    assert list(mp.observers[new]) == list(refined.observers()[new])
+    np.testing.assert_array_equal(mp.n_observations[new], refined.n_observations[new])
+    np.testing.assert_array_equal(mp.first_seen_ns[new], refined.first_seen_ns[new])
+    np.testing.assert_array_equal(mp.last_seen_ns[new], refined.last_seen_ns[new].max(axis=1))
     # the marginals are honest: the landmarks' NEES against the simulator's truth
     truth = pd.read_csv(worlds["sim3"] / "truth" / "landmarks.csv").set_index("id")
     known = refined.true_id >= 0
