@@ -41,6 +41,7 @@ from cvslam_cli.features.frame_pairs import (
     moved,
     pair_ks,
     pnp_inliers,
+    points,
     predicted_uvd,
     refound,
 )
@@ -147,8 +148,9 @@ def prediction_jacobian(uvd0: F64, motion: F64, K: RectifiedIntrinsics) -> F64:
     """(n, 3, 3): d (later (u, v, d)) / d (earlier (u, v, d)) of `frame_pairs.predicted_uvd`
     after `moved` with one motion (6,)."""
     R = Rotation.from_rotvec(motion[:3]).as_matrix()
-    u, v, d = uvd0.T
-    z = K.fb / (d - K.c_lr)
+    u, v, _ = uvd0.T
+    X = points(uvd0, K)
+    z = X[:, 2]
     n = len(uvd0)
     dX = np.zeros((n, 3, 3))  # d X / d (u, v, d)
     dz_dd = -(z**2) / K.fb
@@ -157,7 +159,7 @@ def prediction_jacobian(uvd0: F64, motion: F64, K: RectifiedIntrinsics) -> F64:
     dX[:, 0, 2] = (u - K.cx) / K.f * dz_dd
     dX[:, 1, 2] = (v - K.cy) / K.fy * dz_dd
     dX[:, 2, 2] = dz_dd
-    Y = moved(uvd0, motion, K)
+    Y = X @ R.T + motion[3:]  # `moved`, from the points and rotation at hand
     dP = np.zeros((n, 3, 3))  # d (u, v, d) / d Y
     dP[:, 0, 0] = K.f / Y[:, 2]
     dP[:, 0, 2] = -K.f * Y[:, 0] / Y[:, 2] ** 2

@@ -298,7 +298,7 @@ def _build_case(cfg: Config, L: int, obs: StereoObservationModel) -> Case:
         [(H_pose @ model.pose_jacobian(x_v)).reshape(4 * k, nv), H_lm.reshape(4 * k, 3 * k)], 1
     )
     cols = np.concatenate([v_idx, st.landmark_index(slots).reshape(-1)])
-    sigma = NO_PIXELS  # the synthetic observations' noise
+    sigma = cfg.fuse.association.pixel_sigma_px  # the filter is told the synthetic noise
     h = z.reshape(-1)
     y = h + sigma * rng.standard_normal(len(h))
     R = np.eye(4 * k) * sigma**2
