@@ -30,7 +30,8 @@ The cure kept here (`fuse.observability_constrained`): the state carries N (`Joi
   of the pose it was measured from has zero rows);
 - kept for the landmarks that leave the state (their nav rows, in the landmark book), and
   given back to them when re-activation puts them back, with a cross-covariance with the
-  state's gauge error only (`gauge_correlated`), so that they add no information about it;
+  gauge error the vehicles' states read (`gauge_correlated`), so that they add no
+  information about it;
 - and every update's Jacobian modified as little as possible to meet it, one observation at
   a time over the columns it touches (`constrain`): H* = H - (H N) (N^T N)^+ N^T. Each row
   block keeps its own columns, so the update's structure (`filters.BlockRows`) holds.
@@ -55,8 +56,6 @@ from cvslam_cli.records.arrays import F64
 # Columns of N: translations north, east, down, then the turn about the down axis.
 TRANSLATIONS = ("p_n", "p_e", "p_d")
 YAW_COLUMN = 3
-# Relative ridge on P when the gauge information N^T P^-1 N is computed (`gauge_correlated`).
-RIDGE = 1e-12
 
 
 def has_down_translation(models: list[MotionModel]) -> bool:
@@ -90,22 +89,32 @@ def constrain(H: F64, N: F64) -> F64:
     return H - (H @ N) @ np.linalg.pinv(G, hermitian=True) @ np.swapaxes(N, -1, -2)
 
 
-def gauge_correlated(P: F64, N: F64, N_m: F64, C: F64) -> tuple[F64, F64]:
+def gauge_correlated(P: F64, N: F64, N_m: F64, C: F64, n_vehicle_states: int) -> tuple[F64, F64]:
     """A point put back into the state with marginals C (k, 3, 3) and gauge rows N_m
-    (k, 3, g) that adds no information about the gauge: m = m_true + N_m g + w, g the
-    state's own gauge error (its estimate from the state error, weighted by the
-    information: G = N_m A^-1 N^T P^-1 with A = N^T P^-1 N, the gauge information the
-    prior gave) and w independent. Returns P_mm (3k, 3k) = N_m A^-1 N_m^T + blockdiag(W)
-    with W = C - (N_m A^-1 N_m^T)_jj (clipped to be positive semi-definite) and the
-    cross-covariance P_mx = G P = N_m A^-1 N^T (3k, n)."""
+    (k, 3, g) that adds no information about the gauge: m = m_true + N_m g + w, with w
+    independent and g the state's own gauge error as the vehicles read it: the weighted
+    least-squares estimate g = L x from the error of the vehicles' blocks (the leading
+    `n_vehicle_states` rows v of the state, `state.JointState`),
+        L = A^-1 N_v^T P_vv^-1 E_v,   A = N_v^T P_vv^-1 N_v,
+    so that L N = I. Any L with L N = I makes the point a new state y = N_m L x + w whose
+    gauge rows N_m L N = N_m are the ones it carries, and such a state leaves N^T P^-1 N as
+    it was (the point tells nothing about where the team is or which way it faces). The
+    vehicles carry almost all of what the state knows about the gauge (their initial
+    prior): the standard deviations of this g are 5-20 % above those of the estimate from
+    the whole state (A = N^T P^-1 N) on `uav2_paper`, and the errors of the runs the same
+    (BENCHMARKS.md, "Fuse: consistency (issue 15)"); it costs O(n_v^2 n) where the whole
+    state's A costs a Cholesky factorisation of P, O(n^3).
+    Returns P_mm (3k, 3k) = N_m A^-1 N_m^T + blockdiag(W) with W = C - (N_m A^-1
+    N_m^T)_jj (clipped to be positive semi-definite: where the vehicles know the gauge
+    worse than C, the point is less certain than C) and the cross-covariance
+    P_mx = N_m L P = N_m A^-1 N_v^T P_vv^-1 P_v (3k, n)."""
     k, g = len(N_m), N.shape[1]
-    # P is singular where a clone copies its vehicle's pose exactly, but N has no part in
-    # that null space (a clone's rows copy its vehicle's): a tiny ridge leaves A as it is
-    ridge = RIDGE * float(np.max(np.diagonal(P)))
-    A = N.T @ scipy.linalg.solve(P + ridge * np.eye(len(P)), N, assume_a="pos")
+    v = slice(0, n_vehicle_states)
+    X = scipy.linalg.solve(P[v, v], N[v], assume_a="pos")  # P_vv^-1 N_v (n_v, g)
+    A = N[v].T @ X
     S = np.linalg.inv(0.5 * (A + A.T))
     Nm = N_m.reshape(3 * k, g)
-    P_mx = Nm @ S @ N.T
+    P_mx = Nm @ (S @ (X.T @ P[v]))
     P_mm = Nm @ S @ Nm.T
     for j in range(k):
         b = slice(3 * j, 3 * j + 3)

@@ -31,7 +31,7 @@ covariance k C: the covariance-intersection bound [[P / w, 0], [0, C / (1 - w)]]
 state's weight w -> 1 taken on the landmark alone (the state, whose correlations are
 known, is left as it is), k = 1 / (1 - w). With the observability constraint
 (`fuse.observability_constrained`, `gauge.py`) the landmark comes back with the gauge rows
-it had when it left and correlated with the state's gauge error only
+it had when it left and correlated only with the gauge error the vehicles' states read
 (`gauge.gauge_correlated`): its inflated marginal as before, and nothing about where the
 team is or which way it faces. The NEES of the Monte Carlo
 (`tests/estimation/test_reactivation.py`, BENCHMARKS.md "Fuse: re-activation") is the check
@@ -177,7 +177,7 @@ class Reactivation:
             slots = st.add_landmarks(m, P_mm, np.zeros((3 * k, st.n)))
         else:
             assert st.N is not None
-            P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C)
+            P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, st.n_vehicle_states)
             slots = st.add_landmarks(m, P_mm, P_mx, N_p=N_m.reshape(3 * k, -1))
         book.readmit(ids)
         return slots
@@ -190,8 +190,8 @@ def _anchored(st: JointState, run: VehicleRun, m_nav_m: F64, C: F64, N_m: F64 | 
     vin = run.vin
     pose = VehiclePose.of(st, vin)
     gauge = None
-    if N_m is not None and st.N is not None:  # before the clone, which makes P singular
-        P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C)
+    if N_m is not None and st.N is not None:  # before the clone: its columns follow below
+        P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, st.n_vehicle_states)
         gauge = P_mm, np.concatenate([P_mx, P_mx[:, pose.index] @ pose.J.T], axis=1), N_m
     key, a_rows = pose.clone(st)
     R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]

@@ -114,7 +114,16 @@ def test_constrained_updates_add_no_information_about_the_gauge():
 
 
 def test_a_point_put_back_adds_no_information_about_the_gauge():
+    """Whatever the updates made of the correlations: the gauge error the vehicle's block
+    reads is the one the point shares (gauge.gauge_correlated's L N = I)."""
     st = _joint_state()
+    settings, gamma = FilterSettings("ekf"), GammaPolicy(FilterSettings("ekf"))
+    cols = np.arange(st.n)
+    for _ in range(5):
+        x_new, F, Q = INS.step(st.vehicle_x("uav"), _input(INS, RNG), 0.05)
+        st.predict("uav", x_new, F, Q)
+        H = constrain(RNG.normal(size=(6, st.n)), st.N)
+        st.update(settings, gamma, RNG.normal(size=6), np.zeros(6), H, cols, np.eye(6) * 0.1)
     before = _gauge_information(st)
     k = 2
     m = RNG.normal(0, 30, (k, 3))
@@ -122,7 +131,7 @@ def test_a_point_put_back_adds_no_information_about_the_gauge():
     N_m[:, :, :3] = np.eye(3)
     N_m[:, 0, 3], N_m[:, 1, 3] = -m[:, 1], m[:, 0]
     C = np.broadcast_to(np.eye(3) * 25.0, (k, 3, 3))
-    P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C)
+    P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, st.n_vehicle_states)
     # its marginals are the ones asked for
     for j in range(k):
         np.testing.assert_allclose(P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3], C[j], atol=1e-9)
