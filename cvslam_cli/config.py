@@ -264,7 +264,7 @@ class InitialConfig:
 class AssociationConfig:
     """Data association of stereo matches with mapped landmarks."""
 
-    pixel_sigma_px: Literal["auto"] | float = opt(0.5, lo=0.0, lo_open=True)
+    pixel_sigma_px: Literal["auto"] | float = opt("auto", lo=0.0, lo_open=True)
     gate_probability: float = opt(0.999, lo=0.5, hi=1.0, lo_open=True)
     consistency_probability: float = opt(0.99, lo=0.5, hi=1.0, lo_open=True)
     descriptor_ratio: float = opt(0.8, lo=0.0, hi=1.0, lo_open=True)
@@ -328,7 +328,7 @@ class FuseConfig:
     directory, whose `fuse/map.npz` is read, or a `map.npz`; empty: none)."""
 
     filter: Literal["hinf", "ekf"] = "hinf"
-    observability_constrained: bool = False
+    observability_constrained: Literal["auto"] | bool = "auto"
     prior_map: str = ""
     hinf: HinfConfig = opt(HinfConfig())
     motion: MotionConfig = opt(MotionConfig())

@@ -184,10 +184,14 @@ def test_vehicle_names_must_be_safe_file_names(name, why):
 
 
 def test_a_value_of_several_kinds_takes_the_first_that_fits():
-    """fuse.association.pixel_sigma_px: 'auto' or a number (the default, 0.5)."""
-    assert load_config().fuse.association.pixel_sigma_px == 0.5
-    cfg = load_config(overrides=["fuse.association.pixel_sigma_px=auto"])
-    assert cfg.fuse.association.pixel_sigma_px == "auto"
+    """fuse.association.pixel_sigma_px: 'auto' (the default) or a number;
+    fuse.observability_constrained: 'auto' (the default) or true / false."""
+    assert load_config().fuse.association.pixel_sigma_px == "auto"
+    cfg = load_config(overrides=["fuse.association.pixel_sigma_px=0.5"])
+    assert cfg.fuse.association.pixel_sigma_px == 0.5
+    assert load_config().fuse.observability_constrained == "auto"
+    cfg = load_config(overrides=["fuse.observability_constrained=false"])
+    assert cfg.fuse.observability_constrained is False
     cfg = load_config(overrides=["fuse.association.pixel_sigma_px=0.4"])
     assert cfg.fuse.association.pixel_sigma_px == 0.4
     cfg = load_config(overrides=["fuse.association.pixel_sigma_px=1"])

@@ -39,6 +39,12 @@ Then neither the updates nor the landmarks put back add information along N, and
 uncertainty of the team's position and heading only grows from the initial prior, as in
 the exact system.
 
+`auto` (the default, `constrained`) keeps it on when every vehicle has an IMU and off
+otherwise: it measured better with UAVs (anchored inverse depth, simulated images and
+landmark mode alike) and worse with ground robots in landmark mode and on KITTI clip b
+(BENCHMARKS.md, "Fuse: consistency (issue 15)", ninth, eleventh and twelfth steps), the
+same line as `landmark_coordinates.resolve` draws.
+
 The down translation is in the gauge only when every vehicle has a height state: a ground
 robot (`OdometryModel`) drives at a known height and so pins the map's. A prior map
 (`prior_map.py`) fixes the nav frame itself: there the gauge is observable and the
@@ -46,6 +52,9 @@ constraint is off.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
 
 import numpy as np
 import scipy.linalg
@@ -56,6 +65,19 @@ from cvslam_cli.records.arrays import F64
 # Columns of N: translations north, east, down, then the turn about the down axis.
 TRANSLATIONS = ("p_n", "p_e", "p_d")
 YAW_COLUMN = 3
+
+ConstrainedSetting = Literal["auto"] | bool
+
+
+def constrained(setting: ConstrainedSetting, motion_kinds: Sequence[str]) -> tuple[bool, str]:
+    """Whether the setting fuse.observability_constrained keeps the gauge out of the updates
+    of a team whose vehicles have motion models `motion_kinds`, and why (auto: when every
+    vehicle has an IMU; module docstring)."""
+    if setting != "auto":
+        return bool(setting), "fuse.observability_constrained"
+    if motion_kinds and all(k == "ins" for k in motion_kinds):
+        return True, "auto: every vehicle has an IMU"
+    return False, "auto: a vehicle without an IMU"
 
 
 def has_down_translation(models: list[MotionModel]) -> bool:

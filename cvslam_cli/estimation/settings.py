@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from cvslam_cli.estimation.filters import FilterSettings
+from cvslam_cli.estimation.gauge import ConstrainedSetting
 from cvslam_cli.estimation.landmark_coordinates import CoordinatesSetting
 
 
@@ -52,7 +53,7 @@ class SlamSettings:
     event_merge_ns: int = 5_000_000_000
     joint_init_window_ns: int = 200_000_000
     reactivation: bool = True  # evicted landmarks brought back (reactivation.py)
-    observability_constrained: bool = False  # the gauge kept out of the updates (gauge.py)
+    observability_constrained: ConstrainedSetting = "auto"  # gauge.constrained
     reactivation_inflation: float = 16.0
     prior_map_inflation: float = 16.0  # a prior map's landmarks (prior_map.py)
     refined_prior_map_inflation: float = 1.0  # ... when cvslam refine made the map

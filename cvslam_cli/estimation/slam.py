@@ -64,6 +64,7 @@ from cvslam_cli.estimation.association import (
 from cvslam_cli.estimation.cooperation import Cooperation
 from cvslam_cli.estimation.events import Divergence, DivergenceMonitor, EventLog
 from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
+from cvslam_cli.estimation.gauge import constrained
 from cvslam_cli.estimation.landmark_coordinates import coordinates, resolve
 from cvslam_cli.estimation.linearisation import too_uncertain
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
@@ -144,14 +145,13 @@ class Slam:
         self.names = [v.name for v in vehicles]
         # a map from an earlier run (prior_map.py): its common offset is a block of the state
         self.prior = None if prior is None else PriorMap(prior, settings)
+        kinds = [v.model.kind for v in vehicles]
         self.state = JointState(
             [(v.name, v.model, v.x0, v.P0) for v in vehicles]
             + ([self.prior.offset_block()] if self.prior is not None else []),
-            coordinates(
-                resolve(settings.landmark_coordinates, [v.model.kind for v in vehicles])[0]
-            ),
+            coordinates(resolve(settings.landmark_coordinates, kinds)[0]),
             # a prior map fixes the nav frame: no gauge left to keep out (gauge.py)
-            gauge=settings.observability_constrained and self.prior is None,
+            gauge=constrained(settings.observability_constrained, kinds)[0] and self.prior is None,
         )
         self.book = LandmarkBook(len(vehicles))
         self.runs = [VehicleRun.start(v, i) for i, v in enumerate(vehicles)]

@@ -35,6 +35,7 @@ from cvslam_cli import __version__
 from cvslam_cli.config import Config, FuseConfig
 from cvslam_cli.errors import CvslamError
 from cvslam_cli.estimation.filters import FilterSettings
+from cvslam_cli.estimation.gauge import constrained
 from cvslam_cli.estimation.landmark_coordinates import resolve
 from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import (
@@ -792,6 +793,10 @@ def run(
     _log_settings(cfg.fuse, kind, settings, inputs)
     coords, why = resolve(settings.landmark_coordinates, [v.model.kind for v in inputs])
     log.info("fuse: landmarks in %s coordinates (%s)", coords, why)
+    on, why = constrained(settings.observability_constrained, [v.model.kind for v in inputs])
+    if on and prior is not None:  # as Slam decides (gauge.py)
+        on, why = False, "a prior map fixes the nav frame"
+    log.info("fuse: observability constraint %s (%s)", "on" if on else "off", why)
     res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress, prior)
     dr = {v.name: dead_reckoning_track(v) for v in inputs}
     _refuse_diverged(res, inputs, layout, out.name, kind)

@@ -96,8 +96,10 @@ def test_cooperation_lowers_uav2_error_and_does_not_hurt_uav1(paper_run):
     # error, so it starts slightly worse than alone, from a perfect initial pose). Its first
     # encounter with UAV1's older map is the first stretch of >= 3 two-second bins with >= 7
     # type-2 re-observations each (after 5 s of flight): over it the cooperative error drops
-    # while the single error grows; from then on cooperative stays below single and the gap
-    # grows (the paper's Figures 10 and 13).
+    # and ends well below the single error; from then on cooperative stays below single
+    # (the paper's Figures 10 and 13). (Alone, UAV2 drifted over that stretch until the
+    # measured pixel noise and the observability constraint became the defaults; it now
+    # holds its error there, 2-3x above the cooperative one.)
     t_s = (stamps - stamps[0]) * 1e-9
     b = (t_s // 2).astype(int)
     per_bin = pd.Series(u2.type2.to_numpy()).groupby(b).sum()
@@ -112,7 +114,7 @@ def test_cooperation_lowers_uav2_error_and_does_not_hurt_uav1(paper_run):
           f"{coop_bins[first]:.2f} -> {coop_bins[last]:.2f} m cooperative, "
           f"{single_bins[first]:.2f} -> {single_bins[last]:.2f} m single")  # fmt: skip
     assert coop_bins[last] < 0.85 * coop_bins[first]
-    assert single_bins[last] > single_bins[first]
+    assert coop_bins[last] < 0.5 * single_bins[last]
     after = t_s >= 2 * last + 2
     gap = e_single - e_coop
     print(f"uav2: cooperative error below single on {np.mean(gap[after] > 0):.0%} of the frames "

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cvslam_cli.estimation.filters import FilterSettings, GammaPolicy
-from cvslam_cli.estimation.gauge import constrain, gauge_correlated, vehicle_basis
+from cvslam_cli.estimation.gauge import constrain, constrained, gauge_correlated, vehicle_basis
 from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import (
     ConstantVelocityModel,
@@ -157,3 +157,11 @@ def test_the_down_translation_leaves_the_gauge_with_a_ground_robot():
     assert st.N.shape == (INS.n + ODO.n, 3)
     assert JointState([("uav", INS, _state(INS, RNG), np.eye(INS.n))], gauge=True).N.shape[1] == 4
     assert JointState([("uav", INS, _state(INS, RNG), np.eye(INS.n))]).N is None
+
+
+def test_auto_constrains_a_team_only_when_every_vehicle_has_an_imu():
+    assert constrained("auto", ["ins", "ins"]) == (True, "auto: every vehicle has an IMU")
+    assert not constrained("auto", ["ins", "odometry"])[0]
+    assert not constrained("auto", ["constant_velocity"])[0]
+    assert not constrained("auto", [])[0]
+    assert constrained(True, ["odometry"])[0] and not constrained(False, ["ins"])[0]
