@@ -65,6 +65,8 @@ from cvslam_cli.records.arrays import F64
 # Columns of N: translations north, east, down, then the turn about the down axis.
 TRANSLATIONS = ("p_n", "p_e", "p_d")
 YAW_COLUMN = 3
+# Relative ridge on the vehicles' block when the gauge error is read from it (`gauge_correlated`).
+RIDGE = 1e-12
 
 ConstrainedSetting = Literal["auto"] | bool
 
@@ -73,8 +75,10 @@ def constrained(setting: ConstrainedSetting, motion_kinds: Sequence[str]) -> tup
     """Whether the setting fuse.observability_constrained keeps the gauge out of the updates
     of a team whose vehicles have motion models `motion_kinds`, and why (auto: when every
     vehicle has an IMU; module docstring)."""
+    if isinstance(setting, bool):
+        return setting, "fuse.observability_constrained"
     if setting != "auto":
-        return bool(setting), "fuse.observability_constrained"
+        raise ValueError(f"observability_constrained: expected 'auto' or a bool, got {setting!r}")
     if motion_kinds and all(k == "ins" for k in motion_kinds):
         return True, "auto: every vehicle has an IMU"
     return False, "auto: a vehicle without an IMU"
@@ -124,15 +128,17 @@ def gauge_correlated(P: F64, N: F64, N_m: F64, C: F64, n_vehicle_states: int) ->
     vehicles carry almost all of what the state knows about the gauge (their initial
     prior): the standard deviations of this g are 5-20 % above those of the estimate from
     the whole state (A = N^T P^-1 N) on `uav2_paper`, and the errors of the runs the same
-    (BENCHMARKS.md, "Fuse: consistency (issue 15)"); it costs O(n_v^2 n) where the whole
-    state's A costs a Cholesky factorisation of P, O(n^3).
+    (BENCHMARKS.md, "Fuse: consistency (issue 15)"); it costs O(n_v^3 + g n_v n) where the
+    whole state's A costs a Cholesky factorisation of P, O(n^3).
     Returns P_mm (3k, 3k) = N_m A^-1 N_m^T + blockdiag(W) with W = C - (N_m A^-1
     N_m^T)_jj (clipped to be positive semi-definite: where the vehicles know the gauge
     worse than C, the point is less certain than C) and the cross-covariance
     P_mx = N_m L P = N_m A^-1 N_v^T P_vv^-1 P_v (3k, n)."""
     k, g = len(N_m), N.shape[1]
     v = slice(0, n_vehicle_states)
-    X = scipy.linalg.solve(P[v, v], N[v], assume_a="pos")  # P_vv^-1 N_v (n_v, g)
+    # a tiny ridge: P_vv is positive definite, but an update may leave it so only to rounding
+    ridge = RIDGE * float(np.max(np.diagonal(P[v, v])))
+    X = scipy.linalg.solve(P[v, v] + ridge * np.eye(n_vehicle_states), N[v], assume_a="pos")
     A = N[v].T @ X
     S = np.linalg.inv(0.5 * (A + A.T))
     Nm = N_m.reshape(3 * k, g)

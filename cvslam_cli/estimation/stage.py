@@ -81,6 +81,7 @@ from cvslam_cli.io.result_mcap import write_result_mcap
 from cvslam_cli.io.run_layout import FuseFolder, RunLayout, fuse_name
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import write_tum
+from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.features import FeatureSet
 from cvslam_cli.records.landmark_archive import LandmarkArchive
 from cvslam_cli.records.log import ImuSample, OdometryRecord, PoseRecord
@@ -344,16 +345,30 @@ def _initial_pose(
     R = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[i])
     euler = matrix_to_euler_zyx(R)
     j0, j1 = max(i - 1, 0), min(i + 1, len(gt) - 1)
-    v_nav = np.zeros(3)
+    v_nav = _velocity_at(gt.stamps_ns, gt.p_nav_m, i)
     w_body = np.zeros(3)
     if j1 > j0:
         dt = (gt.stamps_ns[j1] - gt.stamps_ns[j0]) * 1e-9
-        v_nav = (gt.p_nav_m[j1] - gt.p_nav_m[j0]) / dt
         dR = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[j0]).T @ quat_xyzw_to_matrix(
             gt.q_nav_body_xyzw[j1]
         )
         w_body = so3_log(dR) / dt
     return int(gt.stamps_ns[i]), gt.p_nav_m[i].copy(), euler, v_nav, w_body
+
+
+def _velocity_at(stamps_ns: I64, p_m: F64, i: int) -> F64:
+    """(3,) the velocity at sample i of positions p_m (T, 3): the derivative at stamps_ns[i]
+    of the parabola through the three samples nearest it (i and its neighbours; the first or
+    last three at the ends), a line through two, zero with one. At the first sample a plain
+    forward difference would be the velocity half a sample later: on a turn at 2.5 m/s^2
+    sampled at 10 Hz, 0.125 m/s off, more than the initial prior's 0.1 m/s allows."""
+    if len(p_m) < 2:
+        return np.zeros(3)
+    lo = min(max(i - 1, 0), max(len(p_m) - 3, 0))
+    rows = slice(lo, min(lo + 3, len(p_m)))
+    t_s = (stamps_ns[rows] - stamps_ns[i]) * 1e-9
+    coeffs = np.polyfit(t_s, p_m[rows], min(2, len(t_s) - 1))  # (degree + 1, 3)
+    return np.asarray(coeffs[-2], dtype=float)  # d/dt at t = 0
 
 
 def initial_pose_source(cfg: FuseConfig, vehicle: str) -> str:
@@ -742,6 +757,32 @@ def _vehicle_fuse(
     )
 
 
+def _log_auto_choices(
+    settings: SlamSettings, inputs: list[VehicleInput], single: bool, prior: bool
+) -> dict[str, dict[str, Any]]:
+    """Log what the landmark coordinates and the observability constraint resolve to (auto:
+    by the motion models of the vehicles in one filter, as `Slam` resolves them: every
+    vehicle's own with --single) and return it per vehicle for run.yaml."""
+    teams = [[v] for v in inputs] if single else [inputs]
+    chosen: dict[str, dict[str, Any]] = {
+        "landmark_coordinates": {},
+        "observability_constrained": {},
+    }
+    for team in teams:
+        kinds = [v.model.kind for v in team]
+        who = f"{team[0].name}: " if single else ""
+        coords, why = resolve(settings.landmark_coordinates, kinds)
+        log.info("fuse: %slandmarks in %s coordinates (%s)", who, coords, why)
+        on, why = constrained(settings.observability_constrained, kinds)
+        if on and prior:  # as Slam decides (gauge.py)
+            on, why = False, "a prior map fixes the nav frame"
+        log.info("fuse: %sobservability constraint %s (%s)", who, "on" if on else "off", why)
+        for v in team:
+            chosen["landmark_coordinates"][v.name] = coords
+            chosen["observability_constrained"][v.name] = on
+    return chosen
+
+
 def _record_summary(
     cfg: Config, summary: FuseSummary, inputs: list[VehicleInput]
 ) -> dict[str, Any]:
@@ -791,12 +832,7 @@ def run(
     sigma = pixel_sigma(cfg.fuse, inputs)
     settings = slam_settings(cfg.fuse, kind, sigma.sigma_px)
     _log_settings(cfg.fuse, kind, settings, inputs)
-    coords, why = resolve(settings.landmark_coordinates, [v.model.kind for v in inputs])
-    log.info("fuse: landmarks in %s coordinates (%s)", coords, why)
-    on, why = constrained(settings.observability_constrained, [v.model.kind for v in inputs])
-    if on and prior is not None:  # as Slam decides (gauge.py)
-        on, why = False, "a prior map fixes the nav frame"
-    log.info("fuse: observability constraint %s (%s)", "on" if on else "off", why)
+    chosen = _log_auto_choices(settings, inputs, single, prior is not None)
     res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress, prior)
     dr = {v.name: dead_reckoning_track(v) for v in inputs}
     _refuse_diverged(res, inputs, layout, out.name, kind)
@@ -821,6 +857,7 @@ def run(
     )
     record = _record_summary(cfg, summary, inputs)
     record["pixel_sigma_px"] = {"value": round(sigma.sigma_px, 4), "source": sigma.source}
+    record.update(chosen)
     if prior is not None and prior_path is not None:
         record["prior_map"] = _prior_summary(prior_path, prior, res, run_dir)
     rd.record(out.name, plan, outputs, record, wall)

@@ -42,8 +42,8 @@ def _nees(
     error (Euler angles, their 3x3 covariance), EKF: two (frames,) arrays."""
     cfg = load_config(config_files, [*MC_FILTER_OVERRIDES, *overrides])
     pos, att = [], []
-    for d in sims:
-        res, gt = ekf_on_simulation(d, cfg)
+    for seed, d in zip(SEEDS, sims, strict=True):  # each from a draw of its prior
+        res, gt = ekf_on_simulation(d, cfg, initial_error_seed=seed)
         assert res.divergence is None
         tr = res.tracks["uav1"]
         p_t, R_t, _ = interpolate_poses(gt.stamps_ns, gt.p_nav_m, gt.q_nav_body_xyzw, tr.stamps_ns)

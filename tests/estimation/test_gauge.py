@@ -70,10 +70,16 @@ def _gauge_information(st: JointState) -> np.ndarray:
     return st.N.T @ np.linalg.solve(st.P, st.N)
 
 
-def _joint_state():
-    """One INS vehicle and 4 Cartesian landmarks added by the chain rule from its pose."""
-    x0 = _state(INS, RNG)
-    st = JointState([("uav", INS, x0, np.diag(RNG.uniform(1e-4, 1e-3, INS.n)))], gauge=True)
+def _joint_state(vehicles: int = 1):
+    """`vehicles` INS vehicles ("uav", "uav2", ...) and 4 Cartesian landmarks added by the
+    chain rule from the first one's pose."""
+    st = JointState(
+        [
+            (name, INS, _state(INS, RNG), np.diag(RNG.uniform(1e-4, 1e-3, INS.n)))
+            for name in ["uav", *(f"uav{i + 2}" for i in range(vehicles - 1))]
+        ],
+        gauge=True,
+    )
     vb = st.vehicles["uav"]
     k = 4
     G = RNG.normal(size=(3 * k, INS.n))
@@ -113,10 +119,11 @@ def test_constrained_updates_add_no_information_about_the_gauge():
     assert np.all(np.diag(_gauge_information(st)) > 1.01 * np.diag(after))
 
 
-def test_a_point_put_back_adds_no_information_about_the_gauge():
-    """Whatever the updates made of the correlations: the gauge error the vehicle's block
-    reads is the one the point shares (gauge.gauge_correlated's L N = I)."""
-    st = _joint_state()
+@pytest.mark.parametrize("vehicles", [1, 2])
+def test_a_point_put_back_adds_no_information_about_the_gauge(vehicles):
+    """Whatever the updates made of the correlations: the gauge error the vehicles' blocks
+    read is the one the point shares (gauge.gauge_correlated's L N = I)."""
+    st = _joint_state(vehicles)
     settings, gamma = FilterSettings("ekf"), GammaPolicy(FilterSettings("ekf"))
     cols = np.arange(st.n)
     for _ in range(5):
@@ -165,3 +172,5 @@ def test_auto_constrains_a_team_only_when_every_vehicle_has_an_imu():
     assert not constrained("auto", ["constant_velocity"])[0]
     assert not constrained("auto", [])[0]
     assert constrained(True, ["odometry"])[0] and not constrained(False, ["ins"])[0]
+    with pytest.raises(ValueError, match="observability_constrained"):
+        constrained("false", ["ins"])  # type: ignore[arg-type]

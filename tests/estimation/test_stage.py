@@ -92,6 +92,9 @@ def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cv
     # the default measures it (the simulator's 0.5 px)
     assert summary["pixel_sigma_px"]["source"] == "measured"
     assert summary["pixel_sigma_px"]["value"] == pytest.approx(0.5, rel=0.08)
+    # what auto chose for these two IMU vehicles, per vehicle
+    assert summary["landmark_coordinates"] == {"uav1": "inverse_depth", "uav2": "inverse_depth"}
+    assert summary["observability_constrained"] == {"uav1": True, "uav2": True}
     for v in ("uav1", "uav2"):
         s = summary["vehicles"][v]
         assert s["model"] == "ins"
@@ -283,3 +286,18 @@ def test_bad_inputs_give_one_line_errors(sim_run, tmp_path, cvslam):
     # no features at all
     r = cvslam("fuse", tmp_path / "empty")
     assert r.code == 1 and "no feature files" in r.err
+
+
+def test_the_initial_velocity_is_the_trajectorys_at_its_first_pose():
+    """A turn sampled at 10 Hz from its first pose: the velocity there is the truth's (the
+    parabola through three samples), not the forward difference's half a sample later."""
+    t_s = np.arange(6) * 0.1
+    v0, a = np.array([11.0, 0.0, -0.5]), np.array([0.0, 2.5, 0.2])
+    p = np.array([1.0, 2.0, -100.0]) + np.outer(t_s, v0) + 0.5 * np.outer(t_s**2, a)
+    stamps_ns = (t_s * 1e9).astype(np.int64) + 5_000_000_000
+    for i in (0, 2, 5):
+        np.testing.assert_allclose(stage._velocity_at(stamps_ns, p, i), v0 + a * t_s[i], atol=1e-9)
+    forward = (p[1] - p[0]) / 0.1
+    assert abs(forward[1] - v0[1]) > 0.1  # what the first pose had before
+    np.testing.assert_allclose(stage._velocity_at(stamps_ns[:2], p[:2], 0), forward)
+    np.testing.assert_allclose(stage._velocity_at(stamps_ns[:1], p[:1], 0), 0.0)

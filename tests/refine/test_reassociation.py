@@ -178,7 +178,10 @@ def test_rounds_remove_wrong_observations_and_beat_the_filters_associations(case
     e_reassociated = _rmse(p, res.values, case["truth"])
     print(f"\nposition RMSE: filter's observations {e_filter_obs:.3f} m, re-associated "
           f"{e_reassociated:.3f} m")  # fmt: skip
-    assert e_reassociated < 0.8 * e_filter_obs
+    # 0.205 -> 0.130 m while the filter's initial velocity was the forward difference of the
+    # ground truth (half a sample late); from the exact start its own observations give
+    # 0.073 m, and re-association 0.065
+    assert e_reassociated < 0.95 * e_filter_obs
 
 
 def test_guided_matching_rules_on_a_hand_made_frame():
