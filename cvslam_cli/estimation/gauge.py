@@ -136,7 +136,8 @@ def gauge_correlated(P: F64, N: F64, N_m: F64, C: F64, n_vehicle_states: int) ->
     P_mx = N_m L P = N_m A^-1 N_v^T P_vv^-1 P_v (3k, n)."""
     k, g = len(N_m), N.shape[1]
     v = slice(0, n_vehicle_states)
-    # a tiny ridge: P_vv is positive definite, but an update may leave it so only to rounding
+    # P_vv is positive definite (prior and process noise); a tiny ridge keeps rounding in the
+    # updates from making it look otherwise to the Cholesky solve
     ridge = RIDGE * float(np.max(np.diagonal(P[v, v])))
     X = scipy.linalg.solve(P[v, v] + ridge * np.eye(n_vehicle_states), N[v], assume_a="pos")
     A = N[v].T @ X
