@@ -344,31 +344,33 @@ def _initial_pose(
         )
     R = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[i])
     euler = matrix_to_euler_zyx(R)
-    j0, j1 = max(i - 1, 0), min(i + 1, len(gt) - 1)
-    v_nav = _velocity_at(gt.stamps_ns, gt.p_nav_m, i)
-    w_body = np.zeros(3)
-    if j1 > j0:
-        dt = (gt.stamps_ns[j1] - gt.stamps_ns[j0]) * 1e-9
-        dR = quat_xyzw_to_matrix(gt.q_nav_body_xyzw[j0]).T @ quat_xyzw_to_matrix(
-            gt.q_nav_body_xyzw[j1]
-        )
-        w_body = so3_log(dR) / dt
+    near = _nearest_three(len(gt), i)
+    v_nav = _derivative_at(gt.stamps_ns[near], gt.p_nav_m[near], gt.stamps_ns[i])
+    # the body's turn from pose i to each nearby pose (zero at i): its rate is w_body
+    turns = np.array([so3_log(R.T @ quat_xyzw_to_matrix(q)) for q in gt.q_nav_body_xyzw[near]])
+    w_body = _derivative_at(gt.stamps_ns[near], turns, gt.stamps_ns[i])
     return int(gt.stamps_ns[i]), gt.p_nav_m[i].copy(), euler, v_nav, w_body
 
 
-def _velocity_at(stamps_ns: I64, p_m: F64, i: int) -> F64:
-    """(3,) the velocity at sample i of positions p_m (T, 3): the derivative at stamps_ns[i]
-    of the parabola through the three samples nearest it (i and its neighbours; the first or
-    last three at the ends), a line through two, zero with one. At the first sample a plain
-    forward difference would be the velocity half a sample later: on a turn at 2.5 m/s^2
-    sampled at 10 Hz, 0.125 m/s off, more than the initial prior's 0.1 m/s allows."""
-    if len(p_m) < 2:
-        return np.zeros(3)
-    lo = min(max(i - 1, 0), max(len(p_m) - 3, 0))
-    rows = slice(lo, min(lo + 3, len(p_m)))
-    t_s = (stamps_ns[rows] - stamps_ns[i]) * 1e-9
-    coeffs = np.polyfit(t_s, p_m[rows], min(2, len(t_s) - 1))  # (degree + 1, 3)
-    return np.asarray(coeffs[-2], dtype=float)  # d/dt at t = 0
+def _nearest_three(n: int, i: int) -> slice:
+    """The (at most) three of n samples nearest sample i: i and its neighbours, the first or
+    last three at the ends."""
+    lo = min(max(i - 1, 0), max(n - 3, 0))
+    return slice(lo, min(lo + 3, n))
+
+
+def _derivative_at(stamps_ns: I64, values: F64, at_ns: int) -> F64:
+    """(d,) the rate of values (k, d) at `at_ns`: the derivative of the parabola through the
+    k <= 3 samples (a line through two, zero with one). The initial velocity and turn rate
+    from the ground truth: at its first sample a plain forward difference is the rate half a
+    sample later (on a turn at 2.5 m/s^2 sampled at 10 Hz, 0.125 m/s off, more than the
+    initial prior's 0.1 m/s allows); inside evenly sampled truth this is the central
+    difference."""
+    if len(values) < 2:
+        return np.zeros(values.shape[1])
+    t_s = (stamps_ns - at_ns) * 1e-9
+    coeffs = np.polyfit(t_s, values, min(2, len(t_s) - 1))  # (degree + 1, d)
+    return np.asarray(coeffs[-2], dtype=float)
 
 
 def initial_pose_source(cfg: FuseConfig, vehicle: str) -> str:

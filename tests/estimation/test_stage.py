@@ -28,6 +28,7 @@ from cvslam_cli.io.map_file import load_map
 from cvslam_cli.io.mcap_source import McapLogSource
 from cvslam_cli.io.rundir import RunDir
 from cvslam_cli.io.trajectory import read_tum
+from cvslam_cli.records.poses import PoseTable
 from tests.features.synthetic_frames import frames_of
 from tests.scenarios import small_uav_scenario
 
@@ -289,15 +290,25 @@ def test_bad_inputs_give_one_line_errors(sim_run, tmp_path, cvslam):
 
 
 def test_the_initial_velocity_is_the_trajectorys_at_its_first_pose():
-    """A turn sampled at 10 Hz from its first pose: the velocity there is the truth's (the
-    parabola through three samples), not the forward difference's half a sample later."""
+    """A turn sampled at 10 Hz from its first pose: the velocity and turn rate there are
+    the truth's (the parabola through three samples), not the forward difference's half a
+    sample later."""
     t_s = np.arange(6) * 0.1
     v0, a = np.array([11.0, 0.0, -0.5]), np.array([0.0, 2.5, 0.2])
     p = np.array([1.0, 2.0, -100.0]) + np.outer(t_s, v0) + 0.5 * np.outer(t_s**2, a)
+    yaw = 0.3 + 0.25 * t_s + 0.5 * 0.4 * t_s**2  # a turn rate of 0.25 rad/s, growing
+    q = np.array([[0.0, 0.0, np.sin(y / 2), np.cos(y / 2)] for y in yaw])  # xyzw about down
     stamps_ns = (t_s * 1e9).astype(np.int64) + 5_000_000_000
-    for i in (0, 2, 5):
-        np.testing.assert_allclose(stage._velocity_at(stamps_ns, p, i), v0 + a * t_s[i], atol=1e-9)
+    gt = PoseTable(stamps_ns, p, q)
+    cfg = load_config().fuse
+    for i, first_ns in ((0, stamps_ns[0]), (2, stamps_ns[2])):
+        start_ns, p0, euler, v_nav, w_body = stage._initial_pose(cfg, "uav1", gt, first_ns, 0)
+        assert start_ns == stamps_ns[i]
+        np.testing.assert_allclose(p0, p[i])
+        np.testing.assert_allclose(euler, [0.0, 0.0, yaw[i]], atol=1e-12)
+        np.testing.assert_allclose(v_nav, v0 + a * t_s[i], atol=1e-9)
+        np.testing.assert_allclose(w_body, [0.0, 0.0, 0.25 + 0.4 * t_s[i]], atol=1e-9)
     forward = (p[1] - p[0]) / 0.1
     assert abs(forward[1] - v0[1]) > 0.1  # what the first pose had before
-    np.testing.assert_allclose(stage._velocity_at(stamps_ns[:2], p[:2], 0), forward)
-    np.testing.assert_allclose(stage._velocity_at(stamps_ns[:1], p[:1], 0), 0.0)
+    np.testing.assert_allclose(stage._derivative_at(stamps_ns[:2], p[:2], stamps_ns[0]), forward)
+    np.testing.assert_allclose(stage._derivative_at(stamps_ns[:1], p[:1], stamps_ns[0]), 0.0)
