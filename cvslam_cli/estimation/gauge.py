@@ -71,10 +71,20 @@ RIDGE = 1e-12
 ConstrainedSetting = Literal["auto"] | bool
 
 
-def constrained(setting: ConstrainedSetting, motion_kinds: Sequence[str]) -> tuple[bool, str]:
+def constrained(
+    setting: ConstrainedSetting, motion_kinds: Sequence[str], prior_map: bool = False
+) -> tuple[bool, str]:
     """Whether the setting fuse.observability_constrained keeps the gauge out of the updates
     of a team whose vehicles have motion models `motion_kinds`, and why (auto: when every
-    vehicle has an IMU; module docstring)."""
+    vehicle has an IMU; never with a prior map, which fixes the nav frame: module
+    docstring)."""
+    on, why = _setting(setting, motion_kinds)
+    if on and prior_map:
+        return False, "a prior map fixes the nav frame"
+    return on, why
+
+
+def _setting(setting: ConstrainedSetting, motion_kinds: Sequence[str]) -> tuple[bool, str]:
     if isinstance(setting, bool):
         return setting, "fuse.observability_constrained"
     if setting != "auto":

@@ -150,8 +150,7 @@ class Slam:
             [(v.name, v.model, v.x0, v.P0) for v in vehicles]
             + ([self.prior.offset_block()] if self.prior is not None else []),
             coordinates(resolve(settings.landmark_coordinates, kinds)[0]),
-            # a prior map fixes the nav frame: no gauge left to keep out (gauge.py)
-            gauge=constrained(settings.observability_constrained, kinds)[0] and self.prior is None,
+            gauge=constrained(settings.observability_constrained, kinds, self.prior is not None)[0],
         )
         self.book = LandmarkBook(len(vehicles))
         self.runs = [VehicleRun.start(v, i) for i, v in enumerate(vehicles)]

@@ -775,9 +775,7 @@ def _log_auto_choices(
         who = f"{team[0].name}: " if single else ""
         coords, why = resolve(settings.landmark_coordinates, kinds)
         log.info("fuse: %slandmarks in %s coordinates (%s)", who, coords, why)
-        on, why = constrained(settings.observability_constrained, kinds)
-        if on and prior:  # as Slam decides (gauge.py)
-            on, why = False, "a prior map fixes the nav frame"
+        on, why = constrained(settings.observability_constrained, kinds, prior)
         log.info("fuse: %sobservability constraint %s (%s)", who, "on" if on else "off", why)
         for v in team:
             chosen["landmark_coordinates"][v.name] = coords

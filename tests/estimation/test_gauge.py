@@ -98,24 +98,33 @@ def _joint_state(vehicles: int = 1):
     return st
 
 
+def _constrained_steps(st: JointState, steps: int) -> None:
+    """`steps` propagations of "uav", each followed by a random constrained EKF update over
+    every column of the state."""
+    settings, gamma = FilterSettings("ekf"), GammaPolicy(FilterSettings("ekf"))
+    cols = np.arange(st.n)
+    for _ in range(steps):
+        x_new, F, Q = INS.step(st.vehicle_x("uav"), _input(INS, RNG), 0.05)
+        st.predict("uav", x_new, F, Q)
+        H = constrain(RNG.normal(size=(6, st.n)), st.N)
+        st.update(settings, gamma, RNG.normal(size=6), np.zeros(6), H, cols, np.eye(6) * 0.1)
+
+
 def test_constrained_updates_add_no_information_about_the_gauge():
     """The property the module exists for: Nᵀ P⁻¹ N is what the prior gave, after any
     number of constrained updates and propagations; unconstrained rows (an H evaluated
     away from the estimate) add information along it."""
     st = _joint_state()
-    settings, gamma = FilterSettings("ekf"), GammaPolicy(FilterSettings("ekf"))
     before = _gauge_information(st)
-    cols = np.arange(st.n)
-    for _ in range(10):
-        x_new, F, Q = INS.step(st.vehicle_x("uav"), _input(INS, RNG), 0.05)
-        st.predict("uav", x_new, F, Q)
-        H = constrain(RNG.normal(size=(6, st.n)), st.N)
-        st.update(settings, gamma, RNG.normal(size=6), np.zeros(6), H, cols, np.eye(6) * 0.1)
+    _constrained_steps(st, 10)
     after = _gauge_information(st)
     # process noise only lowers it
     assert np.all(np.diag(after) <= np.diag(before) * (1 + 1e-9))
+    settings, gamma = FilterSettings("ekf"), GammaPolicy(FilterSettings("ekf"))
     H = RNG.normal(size=(6, st.n))
-    st.update(settings, gamma, RNG.normal(size=6), np.zeros(6), H, cols, np.eye(6) * 1e-4)
+    st.update(
+        settings, gamma, RNG.normal(size=6), np.zeros(6), H, np.arange(st.n), np.eye(6) * 1e-4
+    )
     assert np.all(np.diag(_gauge_information(st)) > 1.01 * np.diag(after))
 
 
@@ -124,13 +133,7 @@ def test_a_point_put_back_adds_no_information_about_the_gauge(vehicles):
     """Whatever the updates made of the correlations: the gauge error the vehicles' blocks
     read is the one the point shares (gauge.gauge_correlated's L N = I)."""
     st = _joint_state(vehicles)
-    settings, gamma = FilterSettings("ekf"), GammaPolicy(FilterSettings("ekf"))
-    cols = np.arange(st.n)
-    for _ in range(5):
-        x_new, F, Q = INS.step(st.vehicle_x("uav"), _input(INS, RNG), 0.05)
-        st.predict("uav", x_new, F, Q)
-        H = constrain(RNG.normal(size=(6, st.n)), st.N)
-        st.update(settings, gamma, RNG.normal(size=6), np.zeros(6), H, cols, np.eye(6) * 0.1)
+    _constrained_steps(st, 5)
     before = _gauge_information(st)
     k = 2
     m = RNG.normal(0, 30, (k, 3))
