@@ -162,10 +162,20 @@ def _a_worker_died(pool: ProcessPoolExecutor) -> bool:
 def _kill_workers(pool: ProcessPoolExecutor) -> None:
     """SIGKILL the workers left in a broken pool. The pool's own clean-up only SIGTERMs them,
     which they ignore (see the module docstring), and one can block forever on a queue lock
-    the dead worker held, so the pool's shutdown would wait on it forever."""
+    the dead worker held, so the pool's shutdown would wait on it forever.
+
+    Then close this process's copy of the result pipe's write end: a worker killed part-way
+    through sending a result leaves the pool's manager thread reading the rest of that
+    message, and with this process holding a write end open the read never ends (nor the
+    shutdown that joins the thread). Once the workers are gone it reads end-of-file and the
+    pool breaks as for any other death."""
     for process in _workers(pool):
         with contextlib.suppress(OSError, ValueError):
             process.kill()
+    writer = getattr(getattr(pool, "_result_queue", None), "_writer", None)
+    if writer is not None:
+        with contextlib.suppress(OSError):
+            writer.close()
 
 
 def _died(job: J, describe: Callable[[J], str]) -> WorkerError:

@@ -3,12 +3,14 @@ SIGTERM end cleanly (exit 130 / 143, no traceback, no leaked semaphore)."""
 
 from __future__ import annotations
 
+import multiprocessing.connection
 import os
 import re
 import signal
 import subprocess
 import sys
 import time
+from typing import Any
 
 import psutil
 import pytest
@@ -67,6 +69,49 @@ def test_killed_worker_fails_at_once_while_another_is_busy():
     t0 = time.monotonic()
     with pytest.raises(WorkerError, match="job 0"):
         list(ordered_map(_long_or_die, [0, 1], workers=2, state={}, describe=lambda j: f"job {j}"))
+    assert time.monotonic() - t0 < 30
+
+
+def _die_while_sending(job: int) -> bytes | int:
+    """Job 0's worker dies part-way through sending its result to the pool: its pipe writes
+    are patched to send the first MiB and then SIGKILL the process. The other job is long."""
+    if job != 0:
+        time.sleep(60)
+        return job
+    send = multiprocessing.connection.Connection._send  # type: ignore[attr-defined]
+
+    def send_part_then_die(self: Any, buf: Any, write: Any = os.write) -> None:
+        if len(buf) > 1 << 20:
+            write(self._handle, bytes(memoryview(buf)[: 1 << 20]))
+            os.kill(os.getpid(), signal.SIGKILL)
+        send(self, buf, write)
+
+    multiprocessing.connection.Connection._send = send_part_then_die  # type: ignore[attr-defined]
+    return bytes(4 << 20)
+
+
+def test_worker_killed_while_sending_its_result_fails_at_once():
+    """A worker that dies half-way through a result leaves the pool's manager thread reading
+    the rest of that message: the pool's write end of the result pipe, held open in this
+    process too, must be closed for the read to end (it hung the stage's clean-up before).
+    Run in a subprocess: a hang here must fail the test, not stall the suite."""
+    code = (
+        "from cvslam_cli.parallel import WorkerError, ordered_map\n"
+        "from tests.test_parallel import _die_while_sending\n"
+        "try:\n"
+        "    list(ordered_map(_die_while_sending, [0, 1], workers=2,\n"
+        "                     state={}, describe=lambda j: f'job {j}'))\n"
+        "except WorkerError as e:\n"
+        "    print(e)\n"
+    )
+    t0 = time.monotonic()
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+        env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "worker process died" in out.stdout and "job 0" in out.stdout, out
+    assert "leaked" not in out.stderr, out.stderr
     assert time.monotonic() - t0 < 30
 
 
