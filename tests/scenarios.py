@@ -86,10 +86,13 @@ MC_FILTER_OVERRIDES = (
 )
 
 
-def monte_carlo_uav_scenario(outlier_fraction: float, duration_s: float) -> dict[str, Any]:
+def monte_carlo_uav_scenario(
+    outlier_fraction: float, duration_s: float, lookalike_fraction: float = 0.0
+) -> dict[str, Any]:
     """The fuse Monte Carlo scenario (the seed is set per run): one UAV at 10 m/s, 100 m above
     terrain with 20 m of relief, a downward stereo camera like `uav2_paper`'s, landmark mode
-    with `outlier_fraction` wrong matches, a consumer IMU (`MC_IMU_NOISE`)."""
+    with `outlier_fraction` random wrong matches and `lookalike_fraction` look-alikes of
+    landmarks in view (`sim.scenario.LandmarkMode`), a consumer IMU (`MC_IMU_NOISE`)."""
     return {
         "name": "fuse_mc",
         "mode": "landmarks",
@@ -104,7 +107,10 @@ def monte_carlo_uav_scenario(outlier_fraction: float, duration_s: float) -> dict
             "relief_scale_m": 100.0,
             "region_scale_m": 100.0,
         },
-        "landmarks": {"outlier_fraction": outlier_fraction},
+        "landmarks": {
+            "outlier_fraction": outlier_fraction,
+            **({"lookalike_fraction": lookalike_fraction} if lookalike_fraction else {}),
+        },
         "vehicles": {
             VEHICLE: {
                 "closed": True,

@@ -8,8 +8,12 @@ both cameras, inside both images, within range and not hidden by a wall; each ca
 each landmark independently with `miss_probability`. Observed pixels get independent
 Gaussian noise; descriptors a per-observation perturbation. Landmarks seen in both images
 are matched (true id); `outlier_fraction` of the matches of a frame are wrong matches
-(random pixels with a disparity inside the search window and a look-alike descriptor,
-id -2). Matches are triangulated with the same inverse observation model as extract.
+(random pixels with a disparity inside the search window and a random SIFT-like descriptor,
+id -2), and `lookalike_fraction` are look-alikes of a landmark in view (repeated texture:
+its descriptor perturbed as a true observation's, its disparity, at a pixel up to
+`lookalike_offset_px` from its own in both images, id -2): the wrong matches that can pass
+the filter's innovation gate and descriptor test, where random ones never do. Matches are
+triangulated with the same inverse observation model as extract.
 """
 
 from __future__ import annotations
@@ -125,6 +129,39 @@ def _keypoints(
     }
 
 
+def _lookalikes(
+    rig: StereoRig,
+    ideal_l: F64,
+    ideal_r: F64,
+    n_true: int,
+    mode: LandmarkMode,
+    rng: np.random.Generator,
+) -> tuple[F64, F64, NDArray[np.int64]]:
+    """Look-alike wrong matches of a frame whose landmarks in view project to ideal_l,
+    ideal_r (n, 2): about `lookalike_fraction` of the frame's matches (n_true true ones), each
+    imitating a landmark drawn from those in view (seen or missed), at its pixels moved by one
+    offset uniform in a disc of radius `lookalike_offset_px` (the same disparity) plus pixel
+    noise, kept where inside both images. Returns left (k, 2), right (k, 2) ideal pixels and
+    the imitated landmarks' rows (k,). No random draw when the fraction is 0 (scenarios
+    without look-alikes simulate as before, bit for bit)."""
+    f = mode.lookalike_fraction
+    none = np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+    if f <= 0 or not n_true or not len(ideal_l):
+        return none
+    k = int(rng.binomial(n_true, f / (1.0 - f)))
+    if not k:
+        return none
+    src = rng.integers(0, len(ideal_l), k)
+    angle = rng.uniform(0.0, 2.0 * np.pi, k)
+    radius = mode.lookalike_offset_px * np.sqrt(rng.uniform(0.0, 1.0, k))
+    offset = np.column_stack([radius * np.cos(angle), radius * np.sin(angle)])
+    sigma = mode.pixel_noise_px
+    look_l = ideal_l[src] + offset + rng.normal(0.0, sigma, (k, 2))
+    look_r = ideal_r[src] + offset + rng.normal(0.0, sigma, (k, 2))
+    keep = _inside(rig.left, look_l) & _inside(rig.right, look_r)
+    return look_l[keep], look_r[keep], src[keep].astype(np.int64)
+
+
 def observe_frame(
     world: LandmarkWorld,
     rig: StereoRig,
@@ -178,11 +215,18 @@ def observe_frame(
     out_desc_l = sift_like_descriptors(n_out, rng)
     out_desc_r = perturb(out_desc_l)
 
+    look_l, look_r, look_src = _lookalikes(rig, ideal_l, ideal_r, n_true, mode, rng)
+    if len(look_src):
+        out_l, out_r = np.vstack([out_l, look_l]), np.vstack([out_r, look_r])
+        out_desc_l = np.vstack([out_desc_l, perturb(world.descriptor[idx[look_src]])])
+        out_desc_r = np.vstack([out_desc_r, perturb(world.descriptor[idx[look_src]])])
+        n_out += len(look_src)
+
     left_uv = np.vstack([uv_l[seen_l], out_l])
     right_uv = np.vstack([uv_r[seen_r], out_r])
     left_desc = np.vstack([desc_l[seen_l], out_desc_l])
     right_desc = np.vstack([desc_r[seen_r], out_desc_r])
-    # frame-local indices of the true matches, then the outliers
+    # frame-local indices of the true matches, then the outliers and look-alikes
     pos_l = np.cumsum(seen_l) - 1
     pos_r = np.cumsum(seen_r) - 1
     m_left = np.concatenate([pos_l[both], int(seen_l.sum()) + np.arange(n_out)])

@@ -104,13 +104,19 @@ class LandmarkMode:
     with Gaussian pixel noise `pixel_noise_px` (independently in both images) and a
     per-observation descriptor perturbation `descriptor_noise` (grey levels); a fraction
     `outlier_fraction` of the matches of each frame are wrong (random pixels and a random
-    descriptor, landmark id -2).
+    descriptor, landmark id -2). Such matches are never near a landmark with a descriptor
+    like theirs, so the filter's association never takes them; the wrong matches that do
+    reach it are look-alikes (repeated texture): `lookalike_fraction` of the matches of each
+    frame imitate a landmark in view (its descriptor, perturbed like a true observation's,
+    and its disparity) at a pixel up to `lookalike_offset_px` from its own, landmark id -2.
     """
 
     density_per_100m2: float = opt(2.0, lo=0.0, lo_open=True)
     pixel_noise_px: float = opt(0.5, lo=0.0)
     miss_probability: float = opt(0.1, lo=0.0, hi=1.0)
     outlier_fraction: float = opt(0.03, lo=0.0, hi=1.0)
+    lookalike_fraction: float = opt(0.0, lo=0.0, hi=0.9)
+    lookalike_offset_px: float = opt(5.0, lo=0.0)
     descriptor_noise: float = opt(6.0, lo=0.0)
     max_range_m: float = opt(250.0, lo=0.0, lo_open=True)
 

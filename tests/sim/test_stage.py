@@ -186,6 +186,42 @@ def test_landmark_mode_writes_features_consistent_with_truth(tmp_path):
     assert np.all(fs.match_ratio[fs.match_landmark_id >= 0] < 1.0)
 
 
+def test_lookalikes_imitate_a_landmark_in_view_near_its_own_pixel(tmp_path):
+    """`landmarks.lookalike_fraction`: wrong matches (id -2) whose descriptor is a landmark's
+    (perturbed as a true observation's) and whose pixels lie within the offset of that
+    landmark's true match in the frame, at its disparity: what the filter's gate and
+    descriptor test cannot tell from the landmark, unlike the random outliers."""
+    sets = ["mode=landmarks", "landmarks.outlier_fraction=0", "landmarks.pixel_noise_px=0.2",
+            "landmarks.lookalike_fraction=0.2", "landmarks.lookalike_offset_px=6"]  # fmt: skip
+    out = run(load_scenario(small_uav_scenario(tmp_path), sets), tmp_path / "lm").out_dir
+    fs, _ = load_features(out / "features" / "uav1.npz")
+    ids = fs.match_landmark_id
+    wrong, total = int(np.sum(ids == -2)), len(ids)
+    assert 0.12 < wrong / total < 0.28  # 20 % of the matches, fewer where pushed off the image
+    near, desc_d, true_d = [], [], []
+    for i in range(fs.n_frames):
+        sl = fs.frame_matches(i)
+        z = np.column_stack(
+            [fs.left_uv_px[fs.match_left[sl]], fs.right_uv_px[fs.match_right[sl]]]
+        )  # fmt: skip
+        desc = fs.left_desc[fs.match_left[sl]].astype(float)
+        fid = ids[sl]
+        true, bad = np.flatnonzero(fid >= 0), np.flatnonzero(fid == -2)
+        for b in bad:
+            d = np.linalg.norm(desc[true] - desc[b], axis=1)
+            j = true[np.argmin(d)]  # the landmark imitated, by descriptor
+            desc_d.append(d.min())
+            near.append(np.abs(z[b] - z[j]).max())
+            assert abs((z[b, 0] - z[b, 2]) - (z[j, 0] - z[j, 2])) < 2.0  # its disparity
+        for t in true[:5]:  # two true observations of different landmarks, for scale
+            others = true[true != t]
+            true_d.append(np.linalg.norm(desc[others] - desc[t], axis=1).min())
+    # found among the frame's true matches (the imitated landmark can be missed: most are)
+    assert np.mean(np.array(desc_d) < 0.5 * np.median(true_d)) > 0.7
+    hit = np.array(desc_d) < 0.5 * np.median(true_d)
+    assert np.all(np.array(near)[hit] < 6.0 + 1.5)  # within the offset (+ pixel noise)
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
