@@ -269,6 +269,7 @@ class AssociationConfig:
     consistency_probability: float = opt(0.99, lo=0.5, hi=1.0, lo_open=True)
     descriptor_ratio: float = opt(0.8, lo=0.0, hi=1.0, lo_open=True)
     other_vehicle_descriptor_ratio: float = opt(0.7, lo=0.0, hi=1.0, lo_open=True)
+    other_vehicle_pixel_sigma_px: float = opt(0.0, lo=0.0)
     max_descriptor_distance: float = opt(350.0, lo=0.0, lo_open=True)
     iterate_sigma_ratio: float = opt(0.05, lo=0.0)
     max_update_iterations: int = opt(5, lo=1)

@@ -54,7 +54,8 @@ class LandmarkPrediction:
     (u_l, v_l, u_r, v_r), `H_v` (k, 4, n_v) w.r.t. the vehicle block, `H_m` (k, 4, d)
     w.r.t. the landmark's d columns in the state (`JointState.landmark_columns`), `S` (k, 4, 4)
     innovation covariances; `rectified`: the rig predicts v_l = v_r, so that an update may
-    use the three rows of `observation.mean_v_rows`."""
+    use the three rows of `observation.mean_v_rows`; `noise_scale` (k,): each observation's
+    pixel noise variance over the filter's (`noise_scale`; None: 1 for all), in S already."""
 
     slots: I64
     z: F64
@@ -62,6 +63,7 @@ class LandmarkPrediction:
     H_m: F64
     S: F64
     rectified: bool = False
+    noise_scale: F64 | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,11 +99,13 @@ def predict_landmarks(
     P_mm: F64,
     R: F64,
     M: F64 | None = None,
+    noise_scale: F64 | None = None,
 ) -> LandmarkPrediction:
     """Predict landmarks m (k, 3) seen from pose (p, Psi), whose d(p, Psi)/d x_v is J_pose
     (6, n_v). P_vv (n_v, n_v), P_vm (k, n_v, d), P_mm (k, d, d): covariance blocks of the
     landmarks' d state columns, with d m / d columns = M (k, 3, d) (None: the identity, the
-    columns are m); H_m (k, 4, d) is w.r.t. those columns."""
+    columns are m); H_m (k, 4, d) is w.r.t. those columns; R (4, 4) the pixel noise, times
+    `noise_scale` (k,) per landmark when given (`noise_scale`)."""
     z, H_pose, H_m = obs.predict(p_nav_m, euler_rad, m_nav_m)
     if M is not None:
         H_m = H_m @ M
@@ -113,9 +117,26 @@ def predict_landmarks(
         + cross
         + np.swapaxes(cross, 1, 2)
         + H_m @ P_mm @ np.swapaxes(H_m, 1, 2)
-        + R
+        + (R if noise_scale is None else noise_scale[:, None, None] * R)
     )
-    return LandmarkPrediction(np.asarray(slots, dtype=np.int64), z, H_v, H_m, S, obs.rectified)
+    return LandmarkPrediction(
+        np.asarray(slots, dtype=np.int64), z, H_v, H_m, S, obs.rectified, noise_scale
+    )
+
+
+def noise_scale(book: LandmarkBook, ids: I64, vehicle: int, ratio: float) -> F64 | None:
+    """(k,) each landmark's pixel noise variance over the filter's when `vehicle` observes
+    it: `ratio` (`SlamSettings.other_vehicle_noise_ratio`) where another vehicle has observed
+    the landmark, 1 where only this one has; None when the ratio is 1 (every observation
+    alike). Another vehicle's view of the ground (another height, heading, camera) places a
+    keypoint less precisely than the next frame of the same camera, whose scatter is what
+    the measured pixel noise is (BENCHMARKS.md, "Fuse: another vehicle's view, its own
+    pixel noise")."""
+    if ratio <= 1.0:
+        return None
+    seen = book.last_seen_ns[ids] != NEVER  # (k, vehicles)
+    seen[:, vehicle] = False
+    return np.where(seen.any(axis=1), ratio, 1.0)
 
 
 def in_view(z: F64, depth_m: F64, size_px: NDArray[np.int64], margin_px: float = 0.0) -> NDArray:
@@ -215,7 +236,8 @@ def pose_consistent(
     correction dx of the vehicle state, nu_j = H_v,j dx + (landmark and pixel noise with
     covariance W_j^-1 = H_m,j P_mm,j H_m,j^T + R); dx is the weighted least-squares solution
     with the prior P_vv, and a match whose residual nu_j - H_v,j dx fails the chi-square gate
-    is dropped, re-solving without it (`iterations` times). P_mm (a, 3, 3)."""
+    is dropped, re-solving without it (`iterations` times). P_mm (a, 3, 3); R (4, 4), times
+    the prediction's `noise_scale` where it has one."""
     a = len(rows)
     keep = np.ones(a, dtype=bool)
     if a == 0:
@@ -223,6 +245,8 @@ def pose_consistent(
     H_v = pred.H_v[rows]
     H_m = pred.H_m[rows]
     nu = z_obs - pred.z[rows]
+    if pred.noise_scale is not None:
+        R = pred.noise_scale[rows][:, None, None] * R
     W = np.linalg.inv(H_m @ P_mm @ np.swapaxes(H_m, 1, 2) + R)  # (a, 4, 4)
     HtW = np.swapaxes(H_v, 1, 2) @ W  # (a, n_v, 4)
     info_prior = np.linalg.inv(P_vv)
@@ -333,12 +357,18 @@ def record_observations(
 
 
 def predict_in_state(
-    state: JointState, vin: VehicleInput, pose: VehiclePose, slots: I64, R_hat: F64
+    state: JointState,
+    vin: VehicleInput,
+    pose: VehiclePose,
+    slots: I64,
+    R_hat: F64,
+    noise_scale: F64 | None = None,
 ) -> tuple[LandmarkPrediction, F64]:
     """The state's landmarks in `slots` predicted into vin's images from its pose, with
-    their innovation covariances (R_hat (4, 4) the pixel noise as the filter scales it);
-    also the covariances P_mm (k, d, d) of their columns in the state
-    (`JointState.landmark_columns`: what the prediction's H_m is the Jacobian for)."""
+    their innovation covariances (R_hat (4, 4) the pixel noise as the filter scales it, times
+    `noise_scale` (k,) per landmark when given); also the covariances P_mm (k, d, d) of their
+    columns in the state (`JointState.landmark_columns`: what the prediction's H_m is the
+    Jacobian for)."""
     cols = state.landmark_columns(slots)  # (k, d)
     P = state.P
     P_vm = P[pose.index[:, None, None], cols[None, :, :]].transpose(1, 0, 2)
@@ -346,5 +376,6 @@ def predict_in_state(
     m, M = state.landmarks_nav(slots)
     pred = predict_landmarks(
         vin.obs, pose.p_nav_m, pose.euler_rad, pose.J, slots, m, pose.P_vv, P_vm, P_mm, R_hat, M,
+        noise_scale,
     )  # fmt: skip
     return pred, P_mm

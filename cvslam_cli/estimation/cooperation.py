@@ -20,6 +20,7 @@ from __future__ import annotations
 from cvslam_cli.estimation.association import (
     associate,
     in_view_rows,
+    noise_scale,
     pose_consistent,
     record_observations,
 )
@@ -76,8 +77,9 @@ class Cooperation:
         front = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots))
         if not len(front):
             return
-        pred, P_mm = self.updater.predict(vin, pose, slots[front])
         ids = self.book.slot_ids[slots[front]]
+        scale = noise_scale(self.book, ids, other.index, s.other_vehicle_noise_ratio)
+        pred, P_mm = self.updater.predict(vin, pose, slots[front], scale)
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2,
             s.other_vehicle_descriptor_ratio, s.max_descriptor_distance,

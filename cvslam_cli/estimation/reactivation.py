@@ -51,6 +51,7 @@ from cvslam_cli.estimation.association import (
     LandmarkPrediction,
     associate,
     in_view_rows,
+    noise_scale,
     pose_consistent,
     view_directions,
 )
@@ -133,12 +134,13 @@ class Reactivation:
         C = self.inflated_cov(ids)
         z, H_pose, H_m = vin.obs.predict(p, euler, book.p_nav_m[ids])
         H_v = H_pose @ pose.J
+        scale = noise_scale(book, ids, run.index, s.other_vehicle_noise_ratio)
         S = (
             H_v @ pose.P_vv @ np.swapaxes(H_v, 1, 2)
             + H_m @ C @ np.swapaxes(H_m, 1, 2)
-            + self.R_pixel_hat
+            + (self.R_pixel_hat if scale is None else scale[:, None, None] * self.R_pixel_hat)
         )
-        pred = LandmarkPrediction(ids, z, H_v, H_m, S)
+        pred = LandmarkPrediction(ids, z, H_v, H_m, S, noise_scale=scale)
         assoc = associate(
             pred, book.desc[ids], frame.z[idx], frame.desc[idx], s.gate_chi2,
             s.descriptor_ratio, s.max_descriptor_distance,

@@ -34,6 +34,9 @@ class SlamSettings:
     consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
     descriptor_ratio: float = 0.8
     other_vehicle_descriptor_ratio: float = 0.7  # landmarks the vehicle has not seen yet
+    # pixel noise of an observation of a landmark another vehicle has observed (0: as
+    # pixel_sigma_px; never below it): `association.noise_scale`
+    other_vehicle_pixel_sigma_px: float = 0.0
     max_descriptor_distance: float = 350.0
     iterate_sigma_ratio: float = 0.05  # linearisation.too_uncertain (0: never iterate)
     max_update_iterations: int = 5  # update.VisualUpdater.iterated_update
@@ -68,6 +71,12 @@ class SlamSettings:
     localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
     localise_confirm_frames: int = 3  # in a prior map: frames that must agree (prior_map.py)
     window: WindowSettings = field(default_factory=WindowSettings)
+
+    @property
+    def other_vehicle_noise_ratio(self) -> float:
+        """The pixel noise variance of an observation of another vehicle's landmark over the
+        filter's (>= 1; 1 when other_vehicle_pixel_sigma_px is 0 or below pixel_sigma_px)."""
+        return max(1.0, (self.other_vehicle_pixel_sigma_px / self.pixel_sigma_px) ** 2)
 
 
 def landmark_bound(s: SlamSettings, n_vehicles: int) -> int:

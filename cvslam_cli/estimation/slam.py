@@ -55,6 +55,7 @@ from cvslam_cli.estimation.association import (
     absence_ns,
     associate,
     classify,
+    noise_scale,
     pose_consistent,
     record_observations,
     spread_order,
@@ -261,8 +262,9 @@ class Slam:
         if not (len(visible) and len(frame)):
             return None, out
         book = self.book
-        pred, P_mm = self.updater.predict(run.vin, pose, visible)
         ids_vis = book.slot_ids[visible]
+        scale = noise_scale(book, ids_vis, run.index, s.other_vehicle_noise_ratio)
+        pred, P_mm = self.updater.predict(run.vin, pose, visible, scale)
         new_to_me = book.last_seen_ns[ids_vis, run.index] == NEVER
         ratio = np.where(new_to_me, s.other_vehicle_descriptor_ratio, s.descriptor_ratio)
         assoc = associate(

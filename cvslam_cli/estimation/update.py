@@ -4,8 +4,9 @@ EKF or NH-infinity update of the joint state (`filters.py`).
 Each observation z_j = (u_l, v_l, u_r, v_r) of landmark j gives 4 rows of H, touching the
 observing vehicle's block (H_v,j) and landmark j's columns (H_m,j: its 3, and its anchor's
 with anchored coordinates) only; the noise is the pixel noise, independent per coordinate
-(R = sigma_px^2 I), scaled by the filter (eq. 14). With a rectified rig the two v rows are
-one (`observation.mean_v_rows`): 3 rows per observation, (u_l, (v_l + v_r) / 2, u_r) with
+(R = sigma_px^2 I; an observation of another vehicle's landmark may have its own,
+`association.noise_scale`), scaled by the filter (eq. 14). With a rectified rig the two v
+rows are one (`observation.mean_v_rows`): 3 rows per observation, (u_l, (v_l + v_r) / 2, u_r) with
 noise sigma_px^2 diag(1, 1/2, 1), the same update to rounding at three quarters of the
 rows. The NIS keeps every coordinate's term: the difference (v_l - v_r), which says nothing
 about the state, adds its own (innovation variance 2 sigma_hat^2), so NIS and its degrees of
@@ -82,11 +83,12 @@ class VisualUpdater:
         self.gamma = GammaPolicy(settings)
 
     def predict(
-        self, vin: VehicleInput, pose: VehiclePose, slots: I64
+        self, vin: VehicleInput, pose: VehiclePose, slots: I64, noise_scale: F64 | None = None
     ) -> tuple[LandmarkPrediction, F64]:
         """The landmarks in `slots` predicted into vin's images from its `pose` (the state's
-        now) with their innovation covariances (with R_hat); also P_mm (k, 3, 3)."""
-        return predict_in_state(self.state, vin, pose, slots, self.R_pixel_hat)
+        now) with their innovation covariances (with R_hat, times `noise_scale` (k,) per
+        landmark when given: `association.noise_scale`); also P_mm (k, 3, 3)."""
+        return predict_in_state(self.state, vin, pose, slots, self.R_pixel_hat, noise_scale)
 
     def update(
         self,
@@ -125,6 +127,7 @@ class VisualUpdater:
         st = self.state
         v_idx = st.vehicles[vin.name].index
         slots = pred.slots[rows]
+        scale = None if pred.noise_scale is None else pred.noise_scale[rows]
         x0 = st.x.copy()
         stacked = self._stack(v_idx, pred, rows, z, extra, x0)  # linearised at x0
         previous = stacked
@@ -137,7 +140,7 @@ class VisualUpdater:
                     stacked, done = previous, done - 1
                     break
                 st.x, last_step = x_next, step
-                pred, _ = self.predict(vin, VehiclePose.of(st, vin), slots)
+                pred, _ = self.predict(vin, VehiclePose.of(st, vin), slots, scale)
                 previous = stacked
                 stacked = self._stack(v_idx, pred, np.arange(len(slots)), z, extra, x0)
                 done += 1
@@ -165,9 +168,11 @@ class VisualUpdater:
         if self.state.N is not None:  # observability constraint, one observation at a time
             H_v, H_m = self._constrained(v_idx, lm_cols, H_v, H_m)
         R_obs, nis_v_difference = self.R_pixel, 0.0
+        scale = None if pred.noise_scale is None else pred.noise_scale[rows]
         if pred.rectified:  # 3 rows per observation (module docstring)
             e = (z_obs[:, 1] - h_obs[:, 1]) - (z_obs[:, 3] - h_obs[:, 3])
-            nis_v_difference = float(e @ e) / self._var_v_difference
+            e_w = e if scale is None else e / scale
+            nis_v_difference = float(e @ e_w) / self._var_v_difference
             z_obs, h_obs, H_v, H_m = (mean_v_rows(a) for a in (z_obs, h_obs, H_v, H_m))
             R_obs = self.R_mean_v
         r = len(R_obs)  # rows per observation
@@ -177,7 +182,8 @@ class VisualUpdater:
         # an anchor shared by several landmarks appears once per landmark: the update is
         # linear in H's columns, so repeated state columns add up
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
-        R = np.kron(np.eye(k), R_obs)
+        # observation j's noise block: scale_j R_obs (`association.noise_scale`)
+        R = np.kron(np.eye(k) if scale is None else np.diag(scale), R_obs)
         y, h = z_obs.reshape(-1), h_obs.reshape(-1)
         if x0 is not None:
             h = h + H @ (x0 - self.state.x)[cols]

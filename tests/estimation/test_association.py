@@ -12,10 +12,12 @@ from cvslam_cli.estimation.association import (
     LandmarkPrediction,
     associate,
     classify,
+    noise_scale,
     spread_order,
     unassociated,
 )
-from cvslam_cli.estimation.mapping import NEVER
+from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
+from cvslam_cli.estimation.settings import SlamSettings
 
 RNG = np.random.default_rng(11)
 
@@ -122,3 +124,21 @@ def test_classify_defines_the_three_types():
     assert (types.count(TYPE_1), types.count(TYPE_2), types.count(TYPE_3)) == (2, 1, 2)
     assert list(unassociated(3).type) == [TYPE_3] * 3
     assert list(classify(near).type) == [0, 0, 0, TYPE_3, 0, TYPE_3]
+
+
+def test_noise_scale_flags_the_landmarks_another_vehicle_has_observed():
+    """The factor goes to a vehicle's observations of landmarks another vehicle has observed
+    (mapped by it, or seen by it since); a landmark only this vehicle has observed keeps the
+    filter's noise; a factor of 1 (the setting off) flags nothing."""
+    book = LandmarkBook(3)
+    down = np.tile([0.0, 0.0, -1.0], (4, 1))
+    ids = book.add(np.zeros((4, 128), np.uint8), 0, 10, np.full(4, -1), down)  # vehicle 0's
+    book.observe(ids[2:3], 1, 20, down[:1])  # vehicle 1 sees landmark 2 too
+    np.testing.assert_array_equal(noise_scale(book, ids, 0, 4.0), [1.0, 1.0, 4.0, 1.0])
+    np.testing.assert_array_equal(noise_scale(book, ids, 1, 4.0), [4.0, 4.0, 4.0, 4.0])
+    np.testing.assert_array_equal(noise_scale(book, ids, 2, 4.0), [4.0] * 4)
+    assert noise_scale(book, ids, 1, 1.0) is None
+    ratio = SlamSettings(pixel_sigma_px=0.35, other_vehicle_pixel_sigma_px=0.7)
+    assert ratio.other_vehicle_noise_ratio == 4.0
+    assert SlamSettings(pixel_sigma_px=0.35).other_vehicle_noise_ratio == 1.0  # 0: off
+    assert SlamSettings(other_vehicle_pixel_sigma_px=0.3).other_vehicle_noise_ratio == 1.0

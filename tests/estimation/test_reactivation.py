@@ -97,7 +97,8 @@ def test_found_again_by_predicted_pixel_and_descriptor_not_when_absent_too_brief
     rig = SimpleNamespace(size_px=np.array([[640, 480], [640, 480]]))
     features = SimpleNamespace(rig=rig)
     run = SimpleNamespace(
-        vin=SimpleNamespace(obs=vin.obs, model=vin.model, name=vin.name, features=features)
+        index=0,
+        vin=SimpleNamespace(obs=vin.obs, model=vin.model, name=vin.name, features=features),
     )
     frame = SimpleNamespace(z=frame_z, desc=frame_desc, stamp_ns=2000 + 6_000_000_000)
     s = SlamSettings(reactivation_min_landmarks=2, reactivation_min_absence_ns=5_000_000_000)

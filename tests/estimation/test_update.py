@@ -171,3 +171,36 @@ def test_the_iterated_update_stops_where_the_update_cost_is_stationary() -> None
     scale = np.abs(prior).max()
     assert 2 < done <= 20 and scale > 1.0  # a real correction, in a few linearisations
     np.testing.assert_allclose(prior, stereo + window, rtol=0, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "hinf"])
+def test_another_vehicles_landmark_observed_with_its_own_pixel_noise(kind: str) -> None:
+    """`fuse.association.other_vehicle_pixel_sigma_px`: landmarks flagged by
+    `association.noise_scale` are predicted (S), tested and updated with the pixel noise
+    scaled by their factor: with every landmark flagged by 4, the update is the one of a
+    filter whose pixel noise is twice as large (x, P and NIS, the v difference's included);
+    with the factor on some landmarks only, S grows for them alone."""
+    st, vin, slots, z, _ = _far_off(np.random.default_rng(7), k=8)
+    settings = FilterSettings(kind=kind, gamma=30.0)
+    rows = np.arange(len(slots))
+    scaled, doubled = copy.deepcopy(st), copy.deepcopy(st)
+    up = VisualUpdater(scaled, settings, SIGMA_PX)
+    pred, _ = up.predict(vin, VehiclePose.of(scaled, vin), slots, np.full(len(slots), 4.0))
+    up2 = VisualUpdater(doubled, settings, 2 * SIGMA_PX)
+    pred2, _ = up2.predict(vin, VehiclePose.of(doubled, vin), slots)
+    np.testing.assert_allclose(pred.S, pred2.S, rtol=1e-12)
+    res = up.update(scaled.vehicles["uav"].index, pred, rows, z, ["uav"])
+    res2 = up2.update(doubled.vehicles["uav"].index, pred2, rows, z, ["uav"])
+    np.testing.assert_allclose(scaled.x, doubled.x, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(scaled.P, doubled.P, rtol=0, atol=1e-12)
+    assert res.nis == pytest.approx(res2.nis, rel=1e-9)
+    assert not np.allclose(scaled.x, st.x)
+    some = np.where(rows % 2 == 0, 4.0, 1.0)
+    pred_some, _ = VisualUpdater(copy.deepcopy(st), settings, SIGMA_PX).predict(
+        vin, VehiclePose.of(st, vin), slots, some
+    )
+    pred_none, _ = VisualUpdater(copy.deepcopy(st), settings, SIGMA_PX).predict(
+        vin, VehiclePose.of(st, vin), slots
+    )
+    R = np.eye(4) * SIGMA_PX**2 * settings.c_v**2
+    np.testing.assert_allclose(pred_some.S - pred_none.S, (some - 1)[:, None, None] * R)
