@@ -128,10 +128,10 @@ def noise_scale(book: LandmarkBook, ids: I64, vehicle: int, ratio: float) -> F64
     """(k,) each landmark's pixel noise variance over the filter's when `vehicle` observes
     it: `ratio` (`SlamSettings.other_vehicle_noise_ratio`) where another vehicle has observed
     the landmark, 1 where only this one has; None when the ratio is 1 (every observation
-    alike). Another vehicle's view of the ground (another height, heading, camera) places a
-    keypoint less precisely than the next frame of the same camera, whose scatter is what
-    the measured pixel noise is (BENCHMARKS.md, "Fuse: another vehicle's view, its own
-    pixel noise")."""
+    alike). Another vehicle's view of the ground (another height, heading, camera), and what
+    it carries of the other vehicle's errors, weighed less than the next frame of the same
+    camera, whose scatter the measured pixel noise is (BENCHMARKS.md, "Fuse: another
+    vehicle's view, its own pixel noise": its innovations are only 10-70 % larger)."""
     if ratio <= 1.0:
         return None
     seen = book.last_seen_ns[ids] != NEVER  # (k, vehicles)
