@@ -117,11 +117,17 @@ def predict_landmarks(
         + cross
         + np.swapaxes(cross, 1, 2)
         + H_m @ P_mm @ np.swapaxes(H_m, 1, 2)
-        + (R if noise_scale is None else noise_scale[:, None, None] * R)
+        + scaled_noise(R, noise_scale)
     )
     return LandmarkPrediction(
         np.asarray(slots, dtype=np.int64), z, H_v, H_m, S, obs.rectified, noise_scale
     )
+
+
+def scaled_noise(R: F64, noise_scale: F64 | None) -> F64:
+    """The pixel noise R (4, 4) of k observations: R itself (None: every one alike) or
+    (k, 4, 4), observation j's scaled by noise_scale[j] (`noise_scale`)."""
+    return R if noise_scale is None else noise_scale[:, None, None] * R
 
 
 def noise_scale(book: LandmarkBook, ids: I64, vehicle: int, ratio: float) -> F64 | None:
@@ -245,9 +251,8 @@ def pose_consistent(
     H_v = pred.H_v[rows]
     H_m = pred.H_m[rows]
     nu = z_obs - pred.z[rows]
-    if pred.noise_scale is not None:
-        R = pred.noise_scale[rows][:, None, None] * R
-    W = np.linalg.inv(H_m @ P_mm @ np.swapaxes(H_m, 1, 2) + R)  # (a, 4, 4)
+    scale = None if pred.noise_scale is None else pred.noise_scale[rows]
+    W = np.linalg.inv(H_m @ P_mm @ np.swapaxes(H_m, 1, 2) + scaled_noise(R, scale))  # (a, 4, 4)
     HtW = np.swapaxes(H_v, 1, 2) @ W  # (a, n_v, 4)
     info_prior = np.linalg.inv(P_vv)
     for _ in range(iterations):

@@ -53,6 +53,7 @@ from cvslam_cli.estimation.association import (
     in_view_rows,
     noise_scale,
     pose_consistent,
+    scaled_noise,
     view_directions,
 )
 from cvslam_cli.estimation.frame import FrameMatches
@@ -138,7 +139,7 @@ class Reactivation:
         S = (
             H_v @ pose.P_vv @ np.swapaxes(H_v, 1, 2)
             + H_m @ C @ np.swapaxes(H_m, 1, 2)
-            + (self.R_pixel_hat if scale is None else scale[:, None, None] * self.R_pixel_hat)
+            + scaled_noise(self.R_pixel_hat, scale)
         )
         pred = LandmarkPrediction(ids, z, H_v, H_m, S, noise_scale=scale)
         assoc = associate(
