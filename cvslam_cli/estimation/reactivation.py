@@ -15,7 +15,9 @@ is known to `MAX_REACTIVATION_STD_M`:
 2. predicted pixel and innovation covariance from the vehicle's pose covariance and the
    landmark's inflated marginal (below), S = H_v P_vv H_v^T + H_m (k C) H_m^T + R_hat, and the
    chi-square gate with the descriptor ratio test against the frame's matches that no
-   landmark in the state claims (`association.associate`);
+   landmark in the state claims (`association.associate`; another vehicle's landmark that
+   this one never observed with `other_vehicle_descriptor_ratio`, as in the frame's own
+   association);
 3. the matches agree with one vehicle correction (`association.pose_consistent`), and at
    least `reactivation_min_landmarks` of them do (one look-alike in a window is no loop).
 Place recognition by appearance alone (when the pose is too uncertain for the windows) is
@@ -142,9 +144,12 @@ class Reactivation:
             + scaled_noise(self.R_pixel_hat, scale)
         )
         pred = LandmarkPrediction(ids, z, H_v, H_m, S, noise_scale=scale)
+        # another vehicle's landmark, new to this one: the stricter ratio, as in `Slam._associate`
+        new_to_me = book.last_seen_ns[ids, run.index] == NEVER
+        ratio = np.where(new_to_me, s.other_vehicle_descriptor_ratio, s.descriptor_ratio)
         assoc = associate(
-            pred, book.desc[ids], frame.z[idx], frame.desc[idx], s.gate_chi2,
-            s.descriptor_ratio, s.max_descriptor_distance,
+            pred, book.desc[ids], frame.z[idx], frame.desc[idx], s.gate_chi2, ratio,
+            s.max_descriptor_distance,
         )  # fmt: skip
         if len(assoc.pred_index) < s.reactivation_min_landmarks:
             return none

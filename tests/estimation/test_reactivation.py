@@ -21,8 +21,9 @@ from tests.estimation.test_landmark_coordinates import _points, _state, _Vehicle
 from tests.scenarios import MC_FILTER_OVERRIDES, ekf_on_simulation, simulate_loop_uav
 
 
-def _mapped(name: str, k: int = 6):
-    """A state with k landmarks of one vehicle, booked; landmarks 1 and 4 evicted."""
+def _mapped(name: str, k: int = 6, n_vehicles: int = 1):
+    """A state with k landmarks of one vehicle (vehicle 0 of the book's `n_vehicles`),
+    booked; landmarks 1 and 4 evicted."""
     rng = np.random.default_rng(5)
     st = _state(name, rng)
     pose = VehiclePose.of(st, _Vehicle())
@@ -31,7 +32,7 @@ def _mapped(name: str, k: int = 6):
         slots, _ = _anchored(st, _Vehicle(), pose, p_cam, cov, None)
     else:
         slots = _cartesian(st, _Vehicle(), pose, p_cam, cov)
-    book = LandmarkBook(1)
+    book = LandmarkBook(n_vehicles)
     desc = rng.integers(0, 256, (k, 128)).astype(np.uint8)
     book.add(desc, 0, 1000, np.arange(k), np.tile([0.0, 0.0, -1.0], (k, 1)))
     evict = np.array([1, 4])
@@ -119,6 +120,43 @@ def test_found_again_by_predicted_pixel_and_descriptor_not_when_absent_too_brief
         len(Reactivation(st, book, strict, np.eye(4) * 0.25).find(run, frame, np.ones(3, bool)).ids)
         == 0
     )
+
+
+def test_another_vehicles_landmark_is_found_again_with_the_stricter_descriptor_ratio() -> None:
+    """Each evicted landmark has two candidates at its predicted pixel whose descriptor
+    distances are in a ratio of 0.75: the vehicle that mapped them finds them again (ratio
+    0.8); another vehicle, which never observed them, does not at its ratio of 0.7 (as in the
+    frame's own association) and does at 0.8."""
+    st, book, _ = _mapped("inverse_depth", n_vehicles=2)
+    book.cov_nav_m2[[1, 4]] = np.eye(3) * 0.5**2
+    vin = _Vehicle()
+    pose = VehiclePose.of(st, vin)
+    ids = np.array([1, 4])
+    z, _, _ = vin.obs.predict(pose.p_nav_m, pose.euler_rad, book.p_nav_m[ids])
+    frame_z = np.concatenate([z + 0.2, z - 0.2])
+    desc = book.desc[ids].astype(np.int64)
+    near, far = desc.copy(), desc.copy()
+    near[:, :16] = np.where(desc[:, :16] > 127, desc[:, :16] - 30, desc[:, :16] + 30)
+    far[:, :16] = np.where(desc[:, :16] > 127, desc[:, :16] - 40, desc[:, :16] + 40)
+    frame_desc = np.concatenate([near, far]).astype(np.uint8)  # distances 120 and 160
+    frame = SimpleNamespace(z=frame_z, desc=frame_desc, stamp_ns=2000 + 6_000_000_000)
+    rig = SimpleNamespace(size_px=np.array([[640, 480], [640, 480]]))
+    features = SimpleNamespace(rig=rig)
+    v = SimpleNamespace(obs=vin.obs, model=vin.model, name=vin.name, features=features)
+    free = np.ones(4, dtype=bool)
+
+    def found(index: int, other_ratio: float) -> list[int]:
+        s = SlamSettings(
+            reactivation_min_landmarks=2, reactivation_min_absence_ns=5_000_000_000,
+            other_vehicle_descriptor_ratio=other_ratio,
+        )  # fmt: skip
+        run = SimpleNamespace(index=index, vin=v)
+        r = Reactivation(st, book, s, np.eye(4) * 0.25).find(run, frame, free)
+        return sorted(r.ids)
+
+    assert found(0, 0.7) == [1, 4]
+    assert found(1, 0.7) == []
+    assert found(1, 0.8) == [1, 4]
 
 
 LOOP_SEEDS = range(2)
