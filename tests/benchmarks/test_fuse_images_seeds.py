@@ -18,7 +18,7 @@ single; then over all vehicle-seeds the mean cooperative RMSE, how many have a N
 Asserted: every command succeeds (no divergence) and every error is finite; nothing about
 accuracy (DESIGN.md convention 8: figures are printed, the issue notes judge them).
 
-Run time: ~3-4 min per seed on the 2-core machine, most of it rendering and extraction;
+Run time: ~2.5 min per seed on the 2-core machine, most of it rendering and extraction;
 CVSLAM_IMAGES_SIM names a folder that keeps the simulations and feature files between runs
 (the filters are always run again), so that comparing settings costs only the fuses.
 """
