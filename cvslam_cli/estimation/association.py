@@ -145,6 +145,17 @@ def noise_scale(book: LandmarkBook, ids: I64, vehicle: int, ratio: float) -> F64
     return np.where(seen.any(axis=1), ratio, 1.0)
 
 
+def descriptor_ratios(
+    book: LandmarkBook, ids: I64, vehicle: int, own_ratio: float, other_ratio: float
+) -> F64:
+    """(k,) the descriptor ratio test's ratio for each landmark `ids` when `vehicle` observes
+    it: `other_ratio` (the stricter) for a landmark it never observed (another vehicle's, seen
+    from elsewhere), `own_ratio` for one it did (BENCHMARKS.md, "Another vehicle's landmarks,
+    a stricter descriptor test"). The frame's association and re-activation both use it."""
+    new_to_me = book.last_seen_ns[ids, vehicle] == NEVER
+    return np.where(new_to_me, other_ratio, own_ratio)
+
+
 def in_view(z: F64, depth_m: F64, size_px: NDArray[np.int64], margin_px: float = 0.0) -> NDArray:
     """(k,) bool: in front of the camera and inside both images (size_px (2, 2) width,
     height of left and right)."""

@@ -52,6 +52,7 @@ from numpy.typing import NDArray
 from cvslam_cli.estimation.association import (
     LandmarkPrediction,
     associate,
+    descriptor_ratios,
     in_view_rows,
     noise_scale,
     pose_consistent,
@@ -144,9 +145,9 @@ class Reactivation:
             + scaled_noise(self.R_pixel_hat, scale)
         )
         pred = LandmarkPrediction(ids, z, H_v, H_m, S, noise_scale=scale)
-        # another vehicle's landmark, new to this one: the stricter ratio, as in `Slam._associate`
-        new_to_me = book.last_seen_ns[ids, run.index] == NEVER
-        ratio = np.where(new_to_me, s.other_vehicle_descriptor_ratio, s.descriptor_ratio)
+        ratio = descriptor_ratios(
+            book, ids, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio
+        )
         assoc = associate(
             pred, book.desc[ids], frame.z[idx], frame.desc[idx], s.gate_chi2, ratio,
             s.max_descriptor_distance,

@@ -55,6 +55,7 @@ from cvslam_cli.estimation.association import (
     absence_ns,
     associate,
     classify,
+    descriptor_ratios,
     noise_scale,
     pose_consistent,
     record_observations,
@@ -68,7 +69,7 @@ from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
 from cvslam_cli.estimation.gauge import constrained
 from cvslam_cli.estimation.landmark_coordinates import coordinates, resolve
 from cvslam_cli.estimation.linearisation import too_uncertain
-from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
+from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
@@ -265,8 +266,9 @@ class Slam:
         ids_vis = book.slot_ids[visible]
         scale = noise_scale(book, ids_vis, run.index, s.other_vehicle_noise_ratio)
         pred, P_mm = self.updater.predict(run.vin, pose, visible, scale)
-        new_to_me = book.last_seen_ns[ids_vis, run.index] == NEVER
-        ratio = np.where(new_to_me, s.other_vehicle_descriptor_ratio, s.descriptor_ratio)
+        ratio = descriptor_ratios(
+            book, ids_vis, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio
+        )
         assoc = associate(
             pred, book.desc[ids_vis], frame.z, frame.desc, s.gate_chi2, ratio,
             s.max_descriptor_distance,
