@@ -47,13 +47,20 @@ def _cvslam(*args: object) -> None:
     assert r.returncode == 0, f"cvslam {' '.join(map(str, args))}: {r.stderr[-2000:]}"
 
 
-def _seed_run(base: Path, scenario: str, seed: int, sets: list[str]) -> pd.DataFrame:
-    """One seed: simulate and extract (unless kept), both fuses, eval; its rows."""
+def prepared(base: Path, scenario: str, seed: int) -> tuple[Path, Path]:
+    """(sim, run) of one seed under `base`: simulated with images and extracted unless kept
+    there already."""
     sim, run = base / f"{scenario}_{seed}" / "sim", base / f"{scenario}_{seed}" / "run"
     if not (sim / "scenario.yaml").is_file():
         _cvslam("simulate", scenario, "-o", sim, "--seed", seed, "--force")
     if not (run / "features").is_dir():
         _cvslam("extract", *sorted(sim.glob("*.mcap")), "-o", run)
+    return sim, run
+
+
+def _seed_run(base: Path, scenario: str, seed: int, sets: list[str]) -> pd.DataFrame:
+    """One seed: simulate and extract (unless kept), both fuses, eval; its rows."""
+    _, run = prepared(base, scenario, seed)
     overrides = [a for s in sets for a in ("--set", s)]
     _cvslam("fuse", run, "--force", *overrides)
     _cvslam("fuse", run, "--single", "--force", *overrides)

@@ -10,16 +10,15 @@ stereo geometry gives them (BENCHMARKS.md, "Fuse: what the simulated images' key
 are"):
 
 - bearing u = (u_l + u_r) / 2, disparity d = u_l - u_r, bearing v = (v_l + v_r) / 2 and
-  v_l - v_r: their standard deviations (and 1.4826 x their median absolute deviation: the
-  core of a long-tailed error) (independent noise sigma per coordinate gives
-  sigma / sqrt 2, sigma sqrt 2, sigma / sqrt 2, sigma sqrt 2), the left-right correlations of
+  v_l - v_r: their standard deviations (independent noise sigma per coordinate gives
+  sigma / sqrt 2, sigma sqrt 2, sigma / sqrt 2, sigma sqrt 2) and 1.4826 x their median
+  absolute deviation (the core of a long-tailed error), the left-right correlations of
   u and v, and each component's autocorrelation along a landmark's track at lags of 1 to 15
   frames (white noise reads about -1 / track length: the fit's own bias), over the tracks
   without a gross residual (a wrong association or a failed fit: beyond OUTLIER_SIGMAS
   robust sigmas);
 - the spread of the mean residual over each frame's landmarks against what independent errors
-  give (an error common to a frame: timing or pose);
-- the run's position RMSE for reference.
+  give (an error common to a frame: timing or pose).
 
 Printed, and written to `runs/benchmarks/keypoint_errors.csv` (gitignored); asserted only
 that the analysis found landmarks and finite figures (DESIGN.md convention 8: the issue notes
@@ -50,7 +49,7 @@ from cvslam_cli.geometry.rotations import (
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.observations_file import load_observations
 from cvslam_cli.io.trajectory import read_tum
-from tests.benchmarks.test_fuse_images_seeds import OUT, _cvslam
+from tests.benchmarks.test_fuse_images_seeds import OUT, _cvslam, prepared
 
 SCENARIO = os.environ.get("CVSLAM_KEYPOINT_SCENARIO", "uav2_paper")
 SEED = int(os.environ.get("CVSLAM_KEYPOINT_SEED", "1"))
@@ -67,11 +66,7 @@ TO_COMPONENTS = np.array(
 
 def _run_folder(base: Path) -> tuple[Path, Path]:
     """(sim, run) with the run's cooperative fuse made if missing."""
-    sim, run = base / f"{SCENARIO}_{SEED}" / "sim", base / f"{SCENARIO}_{SEED}" / "run"
-    if not (sim / "scenario.yaml").is_file():
-        _cvslam("simulate", SCENARIO, "-o", sim, "--seed", SEED, "--force")
-    if not (run / "features").is_dir():
-        _cvslam("extract", *sorted(sim.glob("*.mcap")), "-o", run)
+    sim, run = prepared(base, SCENARIO, SEED)
     if not (run / "fuse" / "observations.npz").is_file():
         _cvslam("fuse", run, "--force")
     return sim, run
