@@ -291,6 +291,7 @@ class MapConfig:
     anchor_span_s: float = opt(1.0, lo=0.0)
     reanchor_max_landmarks: int = opt(8, lo=0)
     max_view_angle_deg: float = opt(80.0, lo=0.0, hi=180.0, lo_open=True)
+    others_tracking_s: float = opt(0.0, lo=0.0)
     loop_closure_gap_s: float = opt(20.0, lo=0.0, lo_open=True)
     loop_closure_min_landmarks: int = opt(3, lo=1)
     event_merge_s: float = opt(5.0, lo=0.0)

@@ -12,9 +12,11 @@ in the book for the output map and the map file (`archive.py`) and for re-activa
 
 Eviction rule (keep what is most useful for later re-observation): landmarks observed in the
 current frame are never evicted, and those observed or created in another vehicle's latest
-frame go last (that vehicle is tracking them and has not had its next frame yet: with
-several vehicles adding landmarks in turn, evicting them would make each vehicle evict the
-others' landmarks before they are ever tracked; with one vehicle this group is empty);
+frame (or within `fuse.map.others_tracking_s` before it: a frame updates only some of the
+landmarks it sees) go last (that vehicle is tracking them and has not had its next frame
+yet: with several vehicles adding landmarks in turn, evicting them would make each vehicle
+evict the others' landmarks before they are ever tracked; with one vehicle this group is
+empty);
 within each group the ones with the fewest observations go first (a landmark tracked over
 many frames is distinctive and well placed, and is the one a loop closure or another vehicle
 will find again; one seen once or twice rarely is), ties broken by the largest position
@@ -134,19 +136,25 @@ class LandmarkBook:
             cos = np.einsum("ij,ij->i", mean, view_dir) / norm
         return (norm == 0) | (cos >= min_cos)
 
-    def eviction_order(self, protected_slots: I64, trace_cov: F64, latest_frame_ns: I64) -> I64:
+    def eviction_order(
+        self, protected_slots: I64, trace_cov: F64, latest_frame_ns: I64, tracking_ns: int = 0
+    ) -> I64:
         """Slots that may be evicted, most evictable first (module docstring). trace_cov (L,):
         trace of each landmark's covariance; latest_frame_ns (n_vehicles,): each other
         vehicle's latest frame stamp (NEVER for the vehicle evicting, and before a first
-        frame)."""
+        frame); tracking_ns: a landmark another vehicle observed within this long before its
+        latest frame is one it is tracking (0: in that frame only)."""
         L = len(self.slot_ids)
         ok = np.ones(L, dtype=bool)
         ok[np.asarray(protected_slots, dtype=np.int64)] = False
         cand = np.flatnonzero(ok)
         ids = self.slot_ids[cand]
         latest = np.asarray(latest_frame_ns, dtype=np.int64)[None, :]
-        in_view = np.any((self.last_seen_ns[ids] == latest) & (latest != NEVER), axis=1)
-        return cand[np.lexsort((-trace_cov[cand], self.n_observations[ids], in_view))]
+        seen = self.last_seen_ns[ids]
+        tracked = np.any(
+            (seen != NEVER) & (latest != NEVER) & (seen >= latest - tracking_ns), axis=1
+        )
+        return cand[np.lexsort((-trace_cov[cand], self.n_observations[ids], tracked))]
 
     def store_estimates(self, slots: I64, p_nav_m: F64, cov: F64) -> None:
         """Record the current nav-frame estimate (k, 3) and marginal covariance (k, 3, 3) of

@@ -170,7 +170,9 @@ class NewLandmarks:
             [r.stamps_ns[-1] if r.stamps_ns and r is not run else NEVER for r in runs],
             dtype=np.int64,
         )
-        order = self.book.eviction_order(protected, np.trace(covs, axis1=1, axis2=2), latest)
+        order = self.book.eviction_order(
+            protected, np.trace(covs, axis1=1, axis2=2), latest, self.settings.others_tracking_ns
+        )
         evict = order[: max(over, bound // 10)]
         self.book.evict(
             evict, st.landmarks(evict), covs[evict], run.t_ns, st.landmark_gauge(evict)

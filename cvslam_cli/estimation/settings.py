@@ -66,6 +66,7 @@ class SlamSettings:
     nis_window: int = 20
     nis_per_dof_max: float = 10.0
     max_view_angle_rad: float = 1.3963  # 80 degrees
+    others_tracking_ns: int = 0  # mapping.LandmarkBook.eviction_order
     localise_min_inliers: int = 12
     localise_reprojection_px: float = 2.0
     localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999

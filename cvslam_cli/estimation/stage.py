@@ -537,6 +537,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         anchor_span_ns=int(m.anchor_span_s * 1e9),
         reanchor_max_landmarks=m.reanchor_max_landmarks,
         max_view_angle_rad=float(np.radians(m.max_view_angle_deg)),
+        others_tracking_ns=int(m.others_tracking_s * 1e9),
         loop_closure_gap_ns=int(m.loop_closure_gap_s * 1e9),
         loop_closure_min_landmarks=m.loop_closure_min_landmarks,
         event_merge_ns=int(m.event_merge_s * 1e9),

@@ -35,6 +35,23 @@ def test_landmarks_another_vehicle_tracks_go_last():
     assert list(order[:2]) == [3, 2]  # fewer observations first
 
 
+def test_landmarks_another_vehicle_observed_within_its_tracking_window_go_last():
+    book = _book(4)
+    # vehicle 1's latest frame is at t = 500: landmark 0 observed then, 1 at 300 and 2 at 100
+    # (each twice now), 3 never by it
+    for lm, t in ((0, 500), (1, 300), (2, 100)):
+        book.observe(np.array([lm]), 1, t, np.array([[0.0, 0.0, -1.0]]))
+    latest = np.array([NEVER, 500])
+    # the latest frame only: 1 and 2 go with 3 (3 has fewer observations: first)
+    assert list(book.eviction_order(np.zeros(0, np.int64), np.ones(4), latest)) == [3, 1, 2, 0]
+    # observed within 250 of the latest frame: 1 is tracked too; 2 (400 before) is not
+    order = book.eviction_order(np.zeros(0, np.int64), np.ones(4), latest, tracking_ns=250)
+    assert list(order[:2]) == [3, 2] and set(order[2:]) == {0, 1}
+    # the vehicle evicting (NEVER) protects nothing by its own observations
+    own = book.eviction_order(np.zeros(0, np.int64), np.ones(4), np.array([NEVER, NEVER]), 10**9)
+    assert list(own) == [3, 0, 1, 2]
+
+
 def test_viewing_angle_limit_and_other_observers():
     book = _book(2)
     book.observe(np.array([1]), 1, 200, np.array([[0.0, 0.0, -1.0]]))
