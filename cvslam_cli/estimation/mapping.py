@@ -150,9 +150,8 @@ class LandmarkBook:
         cand = np.flatnonzero(ok)
         ids = self.slot_ids[cand]
         latest = np.asarray(latest_frame_ns, dtype=np.int64)[None, :]
-        seen = self.last_seen_ns[ids]
         tracked = np.any(
-            (seen != NEVER) & (latest != NEVER) & (seen >= latest - tracking_ns), axis=1
+            (self.last_seen_ns[ids] >= latest - tracking_ns) & (latest != NEVER), axis=1
         )
         return cand[np.lexsort((-trace_cov[cand], self.n_observations[ids], tracked))]
 

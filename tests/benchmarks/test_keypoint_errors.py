@@ -41,11 +41,8 @@ import pandas as pd
 
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.geometry.camera import stereo_rig
-from cvslam_cli.geometry.rotations import (
-    euler_zyx_to_matrix,
-    matrix_to_euler_zyx,
-    quat_xyzw_to_matrix,
-)
+from cvslam_cli.geometry.rotations import matrix_to_euler_zyx, quat_xyzw_to_matrix
+from cvslam_cli.geometry.stereo import projection_matrices, triangulate
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.observations_file import load_observations
 from cvslam_cli.io.trajectory import read_tum
@@ -86,15 +83,17 @@ def _true_poses(sim: Path, vehicle: str, stamps_ns: np.ndarray) -> tuple[np.ndar
 
 
 def _point_fit(
-    obs: StereoObservationModel, p: np.ndarray, e: np.ndarray, z: np.ndarray
+    obs: StereoObservationModel,
+    M: tuple[np.ndarray, np.ndarray],
+    p: np.ndarray,
+    e: np.ndarray,
+    z: np.ndarray,
 ) -> np.ndarray:
     """Residuals (k, 4) of one landmark's k observations z at true poses (p, e) about the
-    point that fits them best (Gauss-Newton from the first observation's stereo point)."""
-    K, b = obs.K[0], np.linalg.norm(obs.t_body_cam[1] - obs.t_body_cam[0])
-    depth = K[0, 0] * b / (z[0, 0] - z[0, 2])
-    ray = np.array([(z[0, 0] - K[0, 2]) / K[0, 0], (z[0, 1] - K[1, 2]) / K[1, 1], 1.0])
-    C = euler_zyx_to_matrix(*e[0])
-    X = p[0] + C @ (obs.t_body_cam[0] + obs.R_cam_body[0].T @ (depth * ray))
+    point that fits them best (Gauss-Newton from the first observation's stereo point,
+    triangulated with the rig's projection matrices M)."""
+    p_cam = triangulate(*M, z[:1, :2], z[:1, 2:])
+    X = obs.landmark_jacobians(p[0], e[0], p_cam)[0][0]
     for _ in range(10):
         r, J = [], []
         for j in range(len(z)):
@@ -127,7 +126,8 @@ def test_keypoint_error_structure() -> None:
         table = load_observations(run / "fuse" / "observations.npz")
         vehicle = VEHICLE or table.vehicles[0]
         fs, _ = load_features(run / "features" / f"{vehicle}.npz")
-        obs = StereoObservationModel.from_rig(stereo_rig(fs.rig))
+        rig = stereo_rig(fs.rig)
+        obs, M = StereoObservationModel.from_rig(rig), projection_matrices(rig)
         mine = table.vehicle == table.vehicles.index(vehicle)
         lid, st, z = table.landmark_id[mine], table.stamp_ns[mine], table.z_px[mine]
         order = np.lexsort((st, lid))
@@ -137,7 +137,7 @@ def test_keypoint_error_structure() -> None:
         tracks, stamps = [], []
         for s0, s1 in zip(starts, np.r_[starts[1:], len(lid)], strict=True):
             if s1 - s0 >= MIN_OBSERVATIONS:
-                res = _point_fit(obs, p_all[s0:s1], e_all[s0:s1], z[s0:s1])
+                res = _point_fit(obs, M, p_all[s0:s1], e_all[s0:s1], z[s0:s1])
                 tracks.append(res @ TO_COMPONENTS.T)
                 stamps.append(st[s0:s1])
     assert tracks, f"no landmark of {vehicle} seen {MIN_OBSERVATIONS} times or more"
