@@ -271,6 +271,7 @@ class AssociationConfig:
     other_vehicle_descriptor_ratio: float = opt(0.7, lo=0.0, hi=1.0, lo_open=True)
     other_vehicle_pixel_sigma_px: float = opt(0.0, lo=0.0)
     max_descriptor_distance: float = opt(350.0, lo=0.0, lo_open=True)
+    octave_bearing_variance: tuple[float, ...] = opt((1.0, 4.0, 8.0), lo=0.0, lo_open=True)
     iterate_sigma_ratio: float = opt(0.05, lo=0.0)
     max_update_iterations: int = opt(5, lo=1)
 
@@ -556,8 +557,8 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
         if not variable and len(raw) != len(args):
             _fail(source, path, _type_name(tp), raw)
         elems = [args[0]] * len(raw) if variable else list(args)
-        return tuple(
-            _convert(e, v, f"{path}[{i}]", source, {})
+        return tuple(  # a list of numbers: each in the field's range
+            _convert(e, v, f"{path}[{i}]", source, meta if variable else {})
             for i, (e, v) in enumerate(zip(elems, raw, strict=True))
         )
     if tp is bool:

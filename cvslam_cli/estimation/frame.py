@@ -21,7 +21,8 @@ class FrameMatches:
     camera frame with covariances cov_cam_m2 (M, 3, 3) (the inverse observation model);
     true_id (M,) the simulator's landmark ids (-1 unknown); depth_sigma_ratio (M,) the depth
     standard deviation of each point over its depth; can_start (M,) whether a match's point
-    can start a landmark (finite, in front, depth_sigma_ratio below the configured bound)."""
+    can start a landmark (finite, in front, depth_sigma_ratio below the configured bound);
+    octave (M,) the left keypoint's SIFT octave (0: the image's own resolution)."""
 
     stamp_ns: int
     index: int
@@ -32,6 +33,7 @@ class FrameMatches:
     true_id: I64
     depth_sigma_ratio: F64
     can_start: NDArray[np.bool_]
+    octave: I64
 
     @staticmethod
     def of(fs: FeatureSet, index: int, stamp_ns: int, max_depth_sigma_ratio: float) -> FrameMatches:
@@ -54,6 +56,7 @@ class FrameMatches:
             true_id=fs.match_landmark_id[sl],
             depth_sigma_ratio=depth_sigma_ratio,
             can_start=can_start,
+            octave=fs.left_octave[ml].astype(np.int64),
         )
 
     def __len__(self) -> int:

@@ -146,6 +146,12 @@ class StereoObservationModel:
 # (u_l, v_l, u_r, v_r) -> (u_l, (v_l + v_r) / 2, u_r): the rows of a rectified rig's
 # observation that carry information (module docstring)
 MEAN_V_ROWS = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.5], [0.0, 0.0, 1.0, 0.0]])
+# The covariance of (u_l, v_l, u_r, v_r) that is the bearing's, for unit noise per coordinate:
+# the bearing ((u_l + u_r) / 2, (v_l + v_r) / 2) of independent unit noise has variance 1/2 and
+# moves both images' keypoints alike; the disparity u_l - u_r and v_l - v_r are the rest.
+BEARING_ROWS = 0.5 * np.array(
+    [[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0], [1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]]
+)
 
 
 def mean_v_rows(a: F64) -> F64:

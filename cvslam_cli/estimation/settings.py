@@ -38,6 +38,8 @@ class SlamSettings:
     # pixel_sigma_px; never below it): `association.noise_scale`
     other_vehicle_pixel_sigma_px: float = 0.0
     max_descriptor_distance: float = 350.0
+    # the bearing noise variance of a keypoint by its octave, relative (octave_noise.py)
+    octave_bearing_variance: tuple[float, ...] = (1.0, 4.0, 8.0)
     iterate_sigma_ratio: float = 0.05  # linearisation.too_uncertain (0: never iterate)
     max_update_iterations: int = 5  # update.VisualUpdater.iterated_update
     max_landmarks: int = 150  # with one vehicle in the filter ...

@@ -73,6 +73,7 @@ from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
+from cvslam_cli.estimation.octave_noise import OctaveBearingNoise
 from cvslam_cli.estimation.prior_map import OFFSET_BLOCK, PriorLandmarks, PriorMap
 from cvslam_cli.estimation.reactivation import Reactivation
 from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
@@ -157,6 +158,10 @@ class Slam:
         self.book = LandmarkBook(len(vehicles))
         self.runs = [VehicleRun.start(v, i) for i, v in enumerate(vehicles)]
         self.updater = VisualUpdater(self.state, settings.filter, settings.pixel_sigma_px)
+        self.octaves = OctaveBearingNoise.of(
+            settings.octave_bearing_variance,
+            [v.features.left_octave[v.features.match_left] for v in vehicles],
+        )
         self.events = EventLog(settings.event_merge_ns)
         self.cooperation = Cooperation(
             self.state, self.book, self.runs, self.updater, self.events, settings
@@ -344,13 +349,16 @@ class Slam:
             found.pred, found.pred_rows, frame.z[found.match_rows],
             self.cooperation.bounded_vehicles(), extra,
         )  # fmt: skip
+        bearing = (
+            None if self.octaves is None else self.octaves.scale(frame.octave[found.match_rows])
+        )
         pose_cov = VehiclePose.of(self.state, vin).cov[:3, :3]
         if too_uncertain(pose_cov, frame.p_cam_m, s.iterate_sigma_ratio):
             res, out.linearisations = self.updater.iterated_update(
-                vin, *args, iterations=s.max_update_iterations
+                vin, *args, iterations=s.max_update_iterations, bearing_scale=bearing
             )
         else:
-            res, out.linearisations = self.updater.update(v_idx, *args), 1
+            res, out.linearisations = self.updater.update(v_idx, *args, bearing_scale=bearing), 1
         if self.window is not None:
             self.window.settle()
         k = len(found.pred_rows)

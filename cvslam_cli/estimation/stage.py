@@ -47,6 +47,7 @@ from cvslam_cli.estimation.motion.models import (
     odometry_input,
 )
 from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.octave_noise import OctaveBearingNoise
 from cvslam_cli.estimation.settings import SlamSettings, WindowSettings, landmark_bound
 from cvslam_cli.estimation.slam import (
     Slam,
@@ -287,6 +288,17 @@ def _log_settings(
         settings.descriptor_ratio,
         settings.max_descriptor_distance,
     )
+    octaves = OctaveBearingNoise.of(
+        settings.octave_bearing_variance,
+        [v.features.left_octave[v.features.match_left] for v in inputs],
+    )
+    if octaves is not None:
+        log.debug(
+            "fuse: bearing noise variance by SIFT octave x %s (octave %d and coarser: the "
+            "last; fuse.association.octave_bearing_variance)",
+            " / ".join(f"{b:g}" for b in octaves.factors),
+            len(octaves.factors) - 1,
+        )
     log.debug(
         "fuse: map: at most %d landmarks in the state with %d vehicle(s), %d updates and %d "
         "new landmarks per frame, new ones ranked by %s (fuse.map)",
@@ -523,6 +535,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         other_vehicle_descriptor_ratio=a.other_vehicle_descriptor_ratio,
         other_vehicle_pixel_sigma_px=a.other_vehicle_pixel_sigma_px,
         max_descriptor_distance=a.max_descriptor_distance,
+        octave_bearing_variance=tuple(a.octave_bearing_variance),
         iterate_sigma_ratio=a.iterate_sigma_ratio,
         max_update_iterations=a.max_update_iterations,
         max_landmarks=m.max_landmarks,

@@ -10,9 +10,13 @@ rows are one (`observation.mean_v_rows`): 3 rows per observation, (u_l, (v_l + v
 noise sigma_px^2 diag(1, 1/2, 1), the same update to rounding at three quarters of the
 rows. The NIS keeps every coordinate's term: the difference (v_l - v_r), which says nothing
 about the state, adds its own (innovation variance 2 sigma_hat^2), so NIS and its degrees of
-freedom (4 per observation) mean what they meant with four rows. Rows of another kind (the sliding
-window's, `window_update.py`) may be stacked into the same update: one pass over the
-covariance instead of two.
+freedom (4 per observation) mean what they meant with four rows. An observation's bearing
+noise may be scaled by its keypoint's octave (`octave_noise.py`): its noise is then sigma_px^2
+(I + (b - 1) BEARING_ROWS) (`observation.BEARING_ROWS`: the bearing's part, common to both
+images), the bearing's variance b times the filter's and the disparity's and the v
+difference's as they were; the stacked R is then block-diagonal rather than a multiple of
+the identity. Rows of another kind (the sliding window's, `window_update.py`) may be stacked
+into the same update: one pass over the covariance instead of two.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
 from cvslam_cli.estimation.filters import BlockRows, FilterSettings, GammaPolicy, UpdateResult
 from cvslam_cli.estimation.gauge import constrain
-from cvslam_cli.estimation.observation import MEAN_V_ROWS, mean_v_rows
+from cvslam_cli.estimation.observation import BEARING_ROWS, MEAN_V_ROWS, mean_v_rows
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose
 from cvslam_cli.records.arrays import F64, I64
@@ -78,6 +82,9 @@ class VisualUpdater:
         self.R_pixel = np.eye(4) * pixel_sigma_px**2
         self.R_pixel_hat = settings.measurement_noise(self.R_pixel)
         self.R_mean_v = MEAN_V_ROWS @ self.R_pixel @ MEAN_V_ROWS.T
+        # the part of R that is the bearing's, common to both images (module docstring)
+        self.W_pixel = pixel_sigma_px**2 * BEARING_ROWS
+        self.W_mean_v = MEAN_V_ROWS @ self.W_pixel @ MEAN_V_ROWS.T
         # innovation variance of v_l - v_r, which no state moves
         self._var_v_difference = float(self.R_pixel_hat[1, 1] + self.R_pixel_hat[3, 3])
         self.gamma = GammaPolicy(settings)
@@ -98,11 +105,13 @@ class VisualUpdater:
         z: F64,
         bounded: Sequence[str],
         extra: ExtraRows | None = None,
+        bearing_scale: F64 | None = None,
     ) -> UpdateResult:
         """One update (eq. 19) with observations z (k, 4) of the predicted landmarks `pred`
         rows `rows` (k,) by the vehicle whose state rows are v_idx, and the `extra` rows if
-        any; NH-infinity's bound on the vehicles `bounded`."""
-        return self._apply(self._stack(v_idx, pred, rows, z, extra), bounded)
+        any; NH-infinity's bound on the vehicles `bounded`; `bearing_scale` (k,): each
+        observation's bearing noise variance over the filter's (module docstring; None: 1)."""
+        return self._apply(self._stack(v_idx, pred, rows, z, extra, bearing_scale), bounded)
 
     def iterated_update(
         self,
@@ -113,6 +122,7 @@ class VisualUpdater:
         bounded: Sequence[str],
         extra: ExtraRows | None = None,
         iterations: int = 5,
+        bearing_scale: F64 | None = None,
     ) -> tuple[UpdateResult, int]:
         """`update` relinearised at its own estimate (the iterated EKF: Gauss-Newton on the
         update's cost, for a correction too large for one linearisation): with x0 the state
@@ -129,7 +139,7 @@ class VisualUpdater:
         slots = pred.slots[rows]
         scale = None if pred.noise_scale is None else pred.noise_scale[rows]
         x0 = st.x.copy()
-        stacked = self._stack(v_idx, pred, rows, z, extra, x0)  # linearised at x0
+        stacked = self._stack(v_idx, pred, rows, z, extra, bearing_scale, x0)  # at x0
         previous = stacked
         done, last_step = 1, np.inf
         try:
@@ -142,7 +152,9 @@ class VisualUpdater:
                 st.x, last_step = x_next, step
                 pred, _ = self.predict(vin, VehiclePose.of(st, vin), slots, scale)
                 previous = stacked
-                stacked = self._stack(v_idx, pred, np.arange(len(slots)), z, extra, x0)
+                stacked = self._stack(
+                    v_idx, pred, np.arange(len(slots)), z, extra, bearing_scale, x0
+                )
                 done += 1
                 if step < 1e-6:
                     break
@@ -157,6 +169,7 @@ class VisualUpdater:
         rows: I64,
         z: F64,
         extra: ExtraRows | None,
+        bearing_scale: F64 | None = None,
         x0: F64 | None = None,
     ) -> _Stacked:
         """The stacked rows of an update (module docstring); with `x0`, linearised at the
@@ -167,14 +180,14 @@ class VisualUpdater:
         z_obs, h_obs, H_v, H_m = z, pred.z[rows], pred.H_v[rows], pred.H_m[rows]
         if self.state.N is not None:  # observability constraint, one observation at a time
             H_v, H_m = self._constrained(v_idx, lm_cols, H_v, H_m)
-        R_obs, nis_v_difference = self.R_pixel, 0.0
+        R_obs, W_obs, nis_v_difference = self.R_pixel, self.W_pixel, 0.0
         scale = None if pred.noise_scale is None else pred.noise_scale[rows]
         if pred.rectified:  # 3 rows per observation (module docstring)
             e = (z_obs[:, 1] - h_obs[:, 1]) - (z_obs[:, 3] - h_obs[:, 3])
             e_w = e if scale is None else e / scale
             nis_v_difference = float(e @ e_w) / self._var_v_difference
             z_obs, h_obs, H_v, H_m = (mean_v_rows(a) for a in (z_obs, h_obs, H_v, H_m))
-            R_obs = self.R_mean_v
+            R_obs, W_obs = self.R_mean_v, self.W_mean_v
         r = len(R_obs)  # rows per observation
         H_lm = np.zeros((k, r, k, d))  # landmark j's rows touch only its columns
         H_lm[np.arange(k), :, np.arange(k), :] = H_m
@@ -182,8 +195,17 @@ class VisualUpdater:
         # an anchor shared by several landmarks appears once per landmark: the update is
         # linear in H's columns, so repeated state columns add up
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
-        # observation j's noise block: scale_j R_obs (`association.noise_scale`)
-        R = np.kron(np.eye(k) if scale is None else np.diag(scale), R_obs)
+        # observation j's noise block: scale_j (R_obs + (b_j - 1) W_obs) (`association.
+        # noise_scale`; b_j its bearing's, module docstring)
+        if bearing_scale is None:
+            R = np.kron(np.eye(k) if scale is None else np.diag(scale), R_obs)
+        else:
+            R_j = R_obs + (np.asarray(bearing_scale) - 1.0)[:, None, None] * W_obs
+            if scale is not None:
+                R_j = R_j * scale[:, None, None]
+            R_full = np.zeros((k, r, k, r))
+            R_full[np.arange(k), :, np.arange(k), :] = R_j
+            R = R_full.reshape(r * k, r * k)
         y, h = z_obs.reshape(-1), h_obs.reshape(-1)
         if x0 is not None:
             h = h + H @ (x0 - self.state.x)[cols]

@@ -118,13 +118,19 @@ def _keypoints(
     uv_px: F64, uv_raw: F64, desc: NDArray[np.uint8], rng: np.random.Generator
 ) -> dict[str, np.ndarray]:
     n = uv_px.shape[0]
+    size_px = rng.uniform(2.0, 8.0, n)
+    angle_deg = rng.uniform(0.0, 360.0, n)
+    response = rng.uniform(0.01, 0.1, n)
+    rng.integers(0, 4, n)  # octaves were drawn here: a seed keeps the scenes it gave
     return {
         "uv_raw_px": uv_raw,
         "uv_px": uv_px,
-        "size_px": rng.uniform(2.0, 8.0, n),
-        "angle_deg": rng.uniform(0.0, 360.0, n),
-        "response": rng.uniform(0.01, 0.1, n),
-        "octave": rng.integers(0, 4, n),
+        "size_px": size_px,
+        "angle_deg": angle_deg,
+        "response": response,
+        # every keypoint at octave 0: the noise added is one sigma whatever the keypoint
+        # (estimation/octave_noise.py reads the octave as the scale of its bearing noise)
+        "octave": np.zeros(n, np.int32),
         "desc": desc,
     }
 

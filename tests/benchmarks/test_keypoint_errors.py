@@ -18,9 +18,13 @@ are"):
   without a gross residual (a wrong association or a failed fit: beyond OUTLIER_SIGMAS
   robust sigmas);
 - the spread of the mean residual over each frame's landmarks against what independent errors
-  give (an error common to a frame: timing or pose).
+  give (an error common to a frame: timing or pose);
+- the same standard deviations by the left keypoint's SIFT octave (0, 1, 2, 3 and coarser),
+  and the bearing's lag-1 autocorrelation over the tracks of each (a track's median octave):
+  what `fuse.association.octave_bearing_variance` models (estimation/octave_noise.py).
 
-Printed, and written to `runs/benchmarks/keypoint_errors.csv` (gitignored); asserted only
+Printed, and written to `runs/benchmarks/keypoint_errors.csv` and
+`keypoint_errors_by_octave.csv` (gitignored); asserted only
 that the analysis found landmarks and finite figures (DESIGN.md convention 8: the issue notes
 judge the figures). Data: the layout of `test_fuse_images_seeds.py` under CVSLAM_IMAGES_SIM
 (base/<scenario>_<seed>/{sim,run}); missing parts are made (simulate, extract, fuse for
@@ -46,6 +50,7 @@ from cvslam_cli.geometry.stereo import projection_matrices, triangulate
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.observations_file import load_observations
 from cvslam_cli.io.trajectory import read_tum
+from cvslam_cli.records.features import FeatureSet
 from tests.benchmarks.test_fuse_images_seeds import OUT, _cvslam, prepared
 
 SCENARIO = os.environ.get("CVSLAM_KEYPOINT_SCENARIO", "uav2_paper")
@@ -54,6 +59,7 @@ VEHICLE = os.environ.get("CVSLAM_KEYPOINT_VEHICLE", "")
 MIN_OBSERVATIONS = 8
 OUTLIER_SIGMAS = 20.0
 LAGS = (1, 2, 3, 5, 10, 15)
+OCTAVE_GROUPS = 4  # octaves 0, 1, 2, and 3 or coarser
 COMPONENTS = ("bearing u", "disparity", "bearing v", "v_l - v_r")
 # (u_l, v_l, u_r, v_r) -> the components above
 TO_COMPONENTS = np.array(
@@ -108,6 +114,46 @@ def _point_fit(
     return np.array([z[j] - obs.predict(p[j], e[j], X[None])[0][0] for j in range(len(z))])
 
 
+def _octaves(fs: FeatureSet, stamps_ns: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(k,) the left keypoint's octave of each observation (the frame's stereo match whose
+    left pixel it is; -99 where none is, which does not happen for a run's own features)."""
+    frame = np.searchsorted(fs.frame_stamp_ns, stamps_ns)
+    out = np.full(len(z), -99, dtype=np.int64)
+    for f in np.unique(frame):
+        left = fs.match_left[fs.frame_matches(int(f))]
+        uv = fs.left_uv_px[left].astype(float)
+        rows = np.flatnonzero(frame == f)
+        d = np.abs(uv[None, :, :] - z[rows, None, :2]).sum(axis=2)
+        j = d.argmin(axis=1)
+        ok = d[np.arange(len(rows)), j] < 1e-3
+        out[rows[ok]] = fs.left_octave[left[j[ok]]]
+    return out
+
+
+def _by_octave(tracks: list[np.ndarray], octaves: list[np.ndarray]) -> pd.DataFrame:
+    """Per octave group (0, 1, 2, 3 and coarser): the components' std and robust std, and
+    the bearing u's lag-1 autocorrelation over the tracks whose median octave is in it."""
+    comp, octv = np.concatenate(tracks), np.minimum(np.concatenate(octaves), OCTAVE_GROUPS - 1)
+    track_group = [min(int(np.median(o)), OCTAVE_GROUPS - 1) for o in octaves]
+    rows = []
+    for g in range(OCTAVE_GROUPS):
+        k = octv == g
+        if k.sum() < 30:
+            continue
+        row: dict[str, float | int | str] = {
+            "octave": f"{g}" + ("+" if g == OCTAVE_GROUPS - 1 else ""),
+            "n": int(k.sum()),
+        }
+        for c, name in enumerate(COMPONENTS[:3]):
+            x = comp[k, c]
+            row[f"{name} std_px"] = float(x.std())
+            row[f"{name} robust_px"] = 1.4826 * float(np.median(np.abs(x - np.median(x))))
+        mine = [t[:, 0] for t, tg in zip(tracks, track_group, strict=True) if tg == g]
+        row["bearing u acf lag1"] = _autocorrelation(mine, 1)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def _autocorrelation(tracks: list[np.ndarray], lag: int) -> float:
     """Pooled autocorrelation at `lag` of the tracks' demeaned series."""
     num = den = 0.0
@@ -134,12 +180,14 @@ def test_keypoint_error_structure() -> None:
         lid, st, z = lid[order], st[order], z[order]
         p_all, e_all = _true_poses(sim, vehicle, st)
         starts = np.flatnonzero(np.r_[True, lid[1:] != lid[:-1]])
-        tracks, stamps = [], []
+        octave = _octaves(fs, st, z)
+        tracks, stamps, octaves = [], [], []
         for s0, s1 in zip(starts, np.r_[starts[1:], len(lid)], strict=True):
             if s1 - s0 >= MIN_OBSERVATIONS:
                 res = _point_fit(obs, M, p_all[s0:s1], e_all[s0:s1], z[s0:s1])
                 tracks.append(res @ TO_COMPONENTS.T)
                 stamps.append(st[s0:s1])
+                octaves.append(octave[s0:s1])
     assert tracks, f"no landmark of {vehicle} seen {MIN_OBSERVATIONS} times or more"
     # a track holding a wrong association (or a fit that failed) is no sample of the noise:
     # kept are the tracks whose every residual lies within OUTLIER_SIGMAS robust sigmas (wide:
@@ -150,6 +198,7 @@ def test_keypoint_error_structure() -> None:
     n_all = len(tracks)
     tracks = [t for t, k in zip(tracks, keep, strict=True) if k]
     stamps = [t for t, k in zip(stamps, keep, strict=True) if k]
+    octaves = [t for t, k in zip(octaves, keep, strict=True) if k]
     comp = np.concatenate(tracks)
     raw = comp @ np.linalg.inv(TO_COMPONENTS).T  # back to (u_l, v_l, u_r, v_r)
     rows = []
@@ -173,6 +222,8 @@ def test_keypoint_error_structure() -> None:
             counts.append(k.sum())
     OUT.mkdir(parents=True, exist_ok=True)
     df.to_csv(OUT / "keypoint_errors.csv", index=False)
+    by_octave = _by_octave(tracks, octaves)
+    by_octave.to_csv(OUT / "keypoint_errors_by_octave.csv", index=False)
     lengths = [len(t) for t in tracks]
     print(
         f"\n{SCENARIO} seed {SEED}, {vehicle}: {n_all} landmarks with >= {MIN_OBSERVATIONS}"
@@ -190,5 +241,8 @@ def test_keypoint_error_structure() -> None:
             f"mean bearing-u residual over a frame's landmarks ({len(means)} frames): std"
             f" {np.std(means):.3f} px (independent errors: {expected:.3f})"
         )
-    print(f"table: {OUT / 'keypoint_errors.csv'}")
+    print("by the left keypoint's octave:")
+    print(by_octave.round(3).to_string(index=False))
+    print(f"tables: {OUT / 'keypoint_errors.csv'}, {OUT / 'keypoint_errors_by_octave.csv'}")
     assert np.all(np.isfinite(df["std_px"]))
+    assert np.all(np.concatenate(octaves) >= -1), "an observation with no stereo match"

@@ -14,7 +14,7 @@ from cvslam_cli.estimation.association import LandmarkPrediction
 from cvslam_cli.estimation.filters import FilterSettings
 from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import InsModel
-from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.observation import BEARING_ROWS, StereoObservationModel
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.update import ExtraRows, VisualUpdater
 from cvslam_cli.estimation.vehicle import VehiclePose
@@ -204,3 +204,52 @@ def test_another_vehicles_landmark_observed_with_its_own_pixel_noise(kind: str) 
     )
     R = np.eye(4) * SIGMA_PX**2 * settings.c_v**2
     np.testing.assert_allclose(pred_some.S - pred_none.S, (some - 1)[:, None, None] * R)
+
+
+@pytest.mark.parametrize("rectified", [True, False], ids=["three_rows", "four_rows"])
+def test_bearing_noise_scaled_per_observation(rectified: bool) -> None:
+    """`bearing_scale` (octave_noise.py): observation j's noise is sigma^2 (I + (b_j - 1)
+    BEARING_ROWS), its bearing's variance b_j times the filter's and its disparity's
+    unchanged: the EKF update (x, P, NIS) equals the textbook one with that R over the four
+    rows, with three rows per observation too; b = 1 is the update without it."""
+    rng = np.random.default_rng(17)
+    st, pred, z = _rectified_prediction(rng, 10)
+    pred = replace(pred, rectified=rectified)
+    k, rows, v_idx = len(pred.slots), np.arange(len(pred.slots)), np.arange(9)
+    b = rng.uniform(0.3, 3.0, k)
+    settings = FilterSettings("ekf")
+    scaled, plain, unit = copy.deepcopy(st), copy.deepcopy(st), copy.deepcopy(st)
+    res = VisualUpdater(scaled, settings, SIGMA_PX).update(
+        v_idx, pred, rows, z, ["uav"], bearing_scale=b
+    )
+    # the textbook update
+    H = np.zeros((4 * k, st.n))
+    cols = st.landmark_columns(pred.slots)
+    for j in range(k):
+        H[4 * j : 4 * j + 4, v_idx] = pred.H_v[j]
+        H[4 * j : 4 * j + 4, cols[j]] = pred.H_m[j]
+    R = np.zeros((4 * k, 4 * k))
+    for j in range(k):
+        R[4 * j : 4 * j + 4, 4 * j : 4 * j + 4] = SIGMA_PX**2 * (
+            np.eye(4) + (b[j] - 1) * BEARING_ROWS
+        )
+    S = H @ st.P @ H.T + R
+    K = st.P @ H.T @ np.linalg.inv(S)
+    r = (z - pred.z).ravel()
+    np.testing.assert_allclose(scaled.x, st.x + K @ r, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(scaled.P, st.P - K @ S @ K.T, rtol=0, atol=1e-12)
+    assert res.nis == pytest.approx(float(r @ np.linalg.solve(S, r)), rel=1e-8)
+    # the bearing's variance is b_j times, the disparity's the same
+    bearing = np.array([[0.5, 0, 0.5, 0], [0, 0.5, 0, 0.5]])
+    disparity = np.array([[1.0, 0, -1.0, 0], [0, 1.0, 0, -1.0]])
+    for j in range(3):
+        R_j = R[4 * j : 4 * j + 4, 4 * j : 4 * j + 4]
+        np.testing.assert_allclose(np.diag(bearing @ R_j @ bearing.T), b[j] * SIGMA_PX**2 / 2)
+        np.testing.assert_allclose(np.diag(disparity @ R_j @ disparity.T), 2 * SIGMA_PX**2)
+    VisualUpdater(plain, settings, SIGMA_PX).update(v_idx, pred, rows, z, ["uav"])
+    VisualUpdater(unit, settings, SIGMA_PX).update(
+        v_idx, pred, rows, z, ["uav"], bearing_scale=np.ones(k)
+    )
+    np.testing.assert_allclose(unit.x, plain.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(unit.P, plain.P, rtol=0, atol=1e-15)
+    assert not np.allclose(scaled.x, plain.x, rtol=0, atol=1e-6)

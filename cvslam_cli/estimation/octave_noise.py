@@ -1,0 +1,56 @@
+"""A keypoint's bearing noise by the SIFT octave it was found at.
+
+SIFT places a keypoint to a fraction of its octave's pixels, so a keypoint found at a coarser
+scale is placed less precisely in the image, and its error changes more slowly along a track
+(the texture that decides it is larger than the view's change between frames). A stereo
+match's disparity is measured between two keypoints of one scale on one row, whose errors
+are largely common, and does not grow so. Measured with the simulator's truth and on KITTI's
+frames in BENCHMARKS.md, "Fuse: the bearing noise by octave".
+
+The filter's pixel noise (`fuse.association.pixel_sigma_px`, measured from consecutive
+frames or configured) is one figure for all keypoints; consecutive frames see little of an
+error that drifts slowly. `fuse.association.octave_bearing_variance` scales the bearing part
+of an observation's noise (the part both images' keypoints share: `observation.BEARING_ROWS`,
+`update.py`) by the keypoint's octave: the o-th number for octave o, the last for every
+coarser one, the first for octaves below 0 (an upsampled image's). Octave 0's number is 1 in
+the shipped config, so the finest keypoints keep the measured noise, and a run whose
+keypoints are all of octave 0 (the landmark-mode simulator's, whose noise is one sigma for
+every keypoint) is the filter without it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cvslam_cli.records.arrays import F64, I64
+
+
+@dataclass(frozen=True, eq=False)
+class OctaveBearingNoise:
+    """factors (g,): the bearing noise variance over the filter's of keypoints of octave o
+    (factors[min(o, g - 1)]; octaves below 0, an upsampled image's, as octave 0)."""
+
+    factors: F64
+
+    @classmethod
+    def of(cls, factors: Sequence[float], octaves: Sequence[I64]) -> OctaveBearingNoise | None:
+        """The configured `factors` for a run whose stereo matches are of these octaves (one
+        array per vehicle); None when no match gets a factor other than 1."""
+        f = np.asarray(factors, dtype=float)
+        if not len(f):
+            return None
+        used = _groups(np.concatenate([np.asarray(o).ravel() for o in octaves]), len(f))
+        if np.all(f[used] == 1.0):
+            return None
+        return cls(f)
+
+    def scale(self, octave: I64) -> F64:
+        """(k,) the bearing noise variance factors of keypoints of these octaves (k,)."""
+        return self.factors[_groups(octave, len(self.factors))]
+
+
+def _groups(octave: I64, n_groups: int) -> I64:
+    return np.clip(np.asarray(octave, dtype=np.int64), 0, n_groups - 1)

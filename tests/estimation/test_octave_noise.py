@@ -1,0 +1,26 @@
+"""The bearing noise by octave (`octave_noise.py`): octave o takes the o-th factor (octaves
+beyond the list its last, below 0 its first), and a run whose stereo matches all get a
+factor of 1 (the landmark-mode simulator's keypoints, all at octave 0) is left as it is."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cvslam_cli.estimation.octave_noise import OctaveBearingNoise
+
+
+def test_each_octave_takes_its_factor() -> None:
+    noise = OctaveBearingNoise.of([1.0, 3.0, 5.0], [np.array([0, 1]), np.array([4])])
+    assert noise is not None
+    np.testing.assert_array_equal(
+        noise.scale(np.array([-1, 0, 1, 2, 3, 9])), [1.0, 1.0, 3.0, 5.0, 5.0, 5.0]
+    )
+
+
+def test_factors_of_one_for_every_match_leave_the_noise_alone() -> None:
+    assert OctaveBearingNoise.of([], [np.arange(4)]) is None
+    assert OctaveBearingNoise.of([1.0], [np.arange(4)]) is None
+    # every keypoint at octave 0 (the landmark-mode simulator's)
+    assert OctaveBearingNoise.of([1.0, 3.0, 5.0], [np.zeros(50, np.int64)]) is None
+    assert OctaveBearingNoise.of([1.0, 1.0, 2.0], [np.array([0, 1, 1]), np.array([-1])]) is None
+    assert OctaveBearingNoise.of([2.0], [np.zeros(3, np.int64)]) is not None
