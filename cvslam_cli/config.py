@@ -271,7 +271,7 @@ class AssociationConfig:
     other_vehicle_descriptor_ratio: float = opt(0.7, lo=0.0, hi=1.0, lo_open=True)
     other_vehicle_pixel_sigma_px: float = opt(0.0, lo=0.0)
     max_descriptor_distance: float = opt(350.0, lo=0.0, lo_open=True)
-    octave_bearing_variance: tuple[float, ...] = opt((1.0, 4.0, 8.0), lo=0.0, lo_open=True)
+    octave_bearing_variance: Literal["auto"] | tuple[float, ...] = opt("auto", lo=0.0, lo_open=True)
     iterate_sigma_ratio: float = opt(0.05, lo=0.0)
     max_update_iterations: int = opt(5, lo=1)
 
@@ -490,8 +490,10 @@ def _type_name(tp: Any, meta: Mapping[str, Any] | None = None) -> str:
         return "a string"
     if origin is tuple:
         args = typing.get_args(tp)
-        count = "" if len(args) == 2 and args[1] is Ellipsis else f"{len(args)} "
-        return f"a list of {count}{_type_name(args[0]).removeprefix('a ').removeprefix('an ')}s"
+        variable = len(args) == 2 and args[1] is Ellipsis
+        count = "" if variable else f"{len(args)} "
+        each = _type_name(args[0]).removeprefix("a ").removeprefix("an ")
+        return f"a list of {count}{each}s" + (_range(meta or {}) if variable else "")
     if origin is dict:
         return "a mapping"
     if dataclasses.is_dataclass(tp):

@@ -108,7 +108,8 @@ def test_later_sources_override_earlier(tmp_path):
         ),
         (
             "fuse: {association: {octave_bearing_variance: [1, 0]}}\n",
-            "c.yaml: fuse.association.octave_bearing_variance[1]: expected a number > 0.0, got 0",
+            "c.yaml: fuse.association.octave_bearing_variance: expected 'auto' or a list of "
+            "numbers > 0.0, got [1, 0]",
         ),
         ("- just\n- a list\n", "c.yaml: expected a YAML mapping (a config file), got list"),
         ("logs: {a: [1, 2\n", "c.yaml: not valid YAML"),

@@ -10,22 +10,45 @@ frames in BENCHMARKS.md, "Fuse: the bearing noise by octave".
 The filter's pixel noise (`fuse.association.pixel_sigma_px`, measured from consecutive
 frames or configured) is one figure for all keypoints; consecutive frames see little of an
 error that drifts slowly. `fuse.association.octave_bearing_variance` scales the bearing part
-of an observation's noise (the part both images' keypoints share: `observation.BEARING_ROWS`,
-`update.py`) by the keypoint's octave: the o-th number for octave o, the last for every
-coarser one, the first for octaves below 0 (an upsampled image's). Octave 0's number is 1 in
-the shipped config, so the finest keypoints keep the measured noise, and a run whose
-keypoints are all of octave 0 (the landmark-mode simulator's, whose noise is one sigma for
-every keypoint) is the filter without it.
+of a landmark observation's noise in the frame's update (the part both images' keypoints
+share: `observation.BEARING_ROWS`, `update.py`; the sliding window's track rows, joint
+initialisation and localisation keep the one figure) by the keypoint's octave: the o-th
+number for octave o, the last for every coarser one, the first for octaves below 0 (an
+upsampled image's). Octave 0's number is 1, so the finest keypoints keep the measured noise,
+and a run whose keypoints are all of octave 0 (the landmark-mode simulator's, whose noise is
+one sigma for every keypoint) is the filter without it.
+
+`auto` (the default): AUTO_FACTORS when every vehicle has an IMU, every octave alike
+otherwise. Where it was measured, the UAV teams (IMU, cameras looking down) gained in
+accuracy and consistency, and the vehicles without an IMU, with forward cameras, lost: the
+car of the KITTI clips (constant velocity) on both clips, the ground robots of `ugv2_yard`
+(wheel odometry) on two seeds of three, one of them badly; why is not known. The same line
+as the landmark coordinates' and the observability constraint's `auto`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from cvslam_cli.records.arrays import F64, I64
+
+OctaveSetting = Literal["auto"] | tuple[float, ...]
+# the factors `auto` gives a team whose vehicles all have an IMU (BENCHMARKS.md)
+AUTO_FACTORS = (1.0, 4.0, 8.0)
+
+
+def resolve(setting: OctaveSetting, motion_kinds: Sequence[str]) -> tuple[tuple[float, ...], str]:
+    """The factors fuse.association.octave_bearing_variance gives a team whose vehicles have
+    motion models `motion_kinds`, and why (module docstring)."""
+    if setting != "auto":
+        return tuple(setting), "fuse.association.octave_bearing_variance"
+    if motion_kinds and all(k == "ins" for k in motion_kinds):
+        return AUTO_FACTORS, "auto: every vehicle has an IMU"
+    return (), "auto: a vehicle without an IMU"
 
 
 @dataclass(frozen=True, eq=False)

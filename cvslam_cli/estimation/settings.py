@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from cvslam_cli.estimation.filters import FilterSettings
 from cvslam_cli.estimation.gauge import ConstrainedSetting
 from cvslam_cli.estimation.landmark_coordinates import CoordinatesSetting
+from cvslam_cli.estimation.octave_noise import OctaveSetting
 
 
 @dataclass(frozen=True)
@@ -39,7 +40,7 @@ class SlamSettings:
     other_vehicle_pixel_sigma_px: float = 0.0
     max_descriptor_distance: float = 350.0
     # the bearing noise variance of a keypoint by its octave, relative (octave_noise.py)
-    octave_bearing_variance: tuple[float, ...] = (1.0, 4.0, 8.0)
+    octave_bearing_variance: OctaveSetting = "auto"
     iterate_sigma_ratio: float = 0.05  # linearisation.too_uncertain (0: never iterate)
     max_update_iterations: int = 5  # update.VisualUpdater.iterated_update
     max_landmarks: int = 150  # with one vehicle in the filter ...

@@ -47,7 +47,7 @@ from cvslam_cli.estimation.motion.models import (
     odometry_input,
 )
 from cvslam_cli.estimation.observation import StereoObservationModel
-from cvslam_cli.estimation.octave_noise import OctaveBearingNoise
+from cvslam_cli.estimation.octave_noise import resolve as octave_factors
 from cvslam_cli.estimation.settings import SlamSettings, WindowSettings, landmark_bound
 from cvslam_cli.estimation.slam import (
     Slam,
@@ -288,17 +288,6 @@ def _log_settings(
         settings.descriptor_ratio,
         settings.max_descriptor_distance,
     )
-    octaves = OctaveBearingNoise.of(
-        settings.octave_bearing_variance,
-        [v.features.left_octave[v.features.match_left] for v in inputs],
-    )
-    if octaves is not None:
-        log.debug(
-            "fuse: bearing noise variance by SIFT octave x %s (octave %d and coarser: the "
-            "last; fuse.association.octave_bearing_variance)",
-            " / ".join(f"{b:g}" for b in octaves.factors),
-            len(octaves.factors) - 1,
-        )
     log.debug(
         "fuse: map: at most %d landmarks in the state with %d vehicle(s), %d updates and %d "
         "new landmarks per frame, new ones ranked by %s (fuse.map)",
@@ -535,7 +524,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         other_vehicle_descriptor_ratio=a.other_vehicle_descriptor_ratio,
         other_vehicle_pixel_sigma_px=a.other_vehicle_pixel_sigma_px,
         max_descriptor_distance=a.max_descriptor_distance,
-        octave_bearing_variance=tuple(a.octave_bearing_variance),
+        octave_bearing_variance=a.octave_bearing_variance,
         iterate_sigma_ratio=a.iterate_sigma_ratio,
         max_update_iterations=a.max_update_iterations,
         max_landmarks=m.max_landmarks,
@@ -777,13 +766,15 @@ def _vehicle_fuse(
 def _log_auto_choices(
     settings: SlamSettings, inputs: list[VehicleInput], single: bool, prior: bool
 ) -> dict[str, dict[str, Any]]:
-    """Log what the landmark coordinates and the observability constraint resolve to (auto:
-    by the motion models of the vehicles in one filter, as `Slam` resolves them: every
-    vehicle's own with --single) and return it per vehicle for run.yaml."""
+    """Log what the landmark coordinates, the observability constraint and the bearing
+    noise by octave resolve to (auto: by the motion models of the vehicles in one filter, as
+    `Slam` resolves them: every vehicle's own with --single) and return it per vehicle for
+    run.yaml."""
     teams = [[v] for v in inputs] if single else [inputs]
     chosen: dict[str, dict[str, Any]] = {
         "landmark_coordinates": {},
         "observability_constrained": {},
+        "octave_bearing_variance": {},
     }
     for team in teams:
         kinds = [v.model.kind for v in team]
@@ -792,9 +783,17 @@ def _log_auto_choices(
         log.info("fuse: %slandmarks in %s coordinates (%s)", who, coords, why)
         on, why = constrained(settings.observability_constrained, kinds, prior)
         log.info("fuse: %sobservability constraint %s (%s)", who, "on" if on else "off", why)
+        factors, why = octave_factors(settings.octave_bearing_variance, kinds)
+        log.info(
+            "fuse: %sbearing noise variance by SIFT octave %s (%s)",
+            who,
+            " / ".join(f"x{b:g}" for b in factors) if factors else "alike",
+            why,
+        )
         for v in team:
             chosen["landmark_coordinates"][v.name] = coords
             chosen["observability_constrained"][v.name] = on
+            chosen["octave_bearing_variance"][v.name] = list(factors)
     return chosen
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cvslam_cli.estimation.octave_noise import OctaveBearingNoise
+from cvslam_cli.estimation.octave_noise import AUTO_FACTORS, OctaveBearingNoise, resolve
 
 
 def test_each_octave_takes_its_factor() -> None:
@@ -24,3 +24,12 @@ def test_factors_of_one_for_every_match_leave_the_noise_alone() -> None:
     assert OctaveBearingNoise.of([1.0, 3.0, 5.0], [np.zeros(50, np.int64)]) is None
     assert OctaveBearingNoise.of([1.0, 1.0, 2.0], [np.array([0, 1, 1]), np.array([-1])]) is None
     assert OctaveBearingNoise.of([2.0], [np.zeros(3, np.int64)]) is not None
+
+
+def test_auto_scales_the_octaves_when_every_vehicle_has_an_imu() -> None:
+    assert resolve("auto", ["ins", "ins"]) == (AUTO_FACTORS, "auto: every vehicle has an IMU")
+    assert resolve("auto", ["ins", "odometry"])[0] == ()
+    assert resolve("auto", ["constant_velocity"])[0] == ()
+    assert resolve((1.0, 2.0), ["odometry"])[0] == (1.0, 2.0)
+    assert resolve((), ["ins"])[0] == ()
+    assert AUTO_FACTORS[0] == 1.0  # the finest keypoints keep the measured noise
