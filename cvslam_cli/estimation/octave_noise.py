@@ -14,9 +14,9 @@ of a landmark observation's noise in the frame's update (the part both images' k
 share: `observation.BEARING_ROWS`, `update.py`; the sliding window's track rows, joint
 initialisation and localisation keep the one figure) by the keypoint's octave: the o-th
 number for octave o, the last for every coarser one, the first for octaves below 0 (an
-upsampled image's). Octave 0's number is 1, so the finest keypoints keep the measured noise,
-and a run whose keypoints are all of octave 0 (the landmark-mode simulator's, whose noise is
-one sigma for every keypoint) is the filter without it.
+upsampled image's). `auto`'s octave 0 number is 1, so the finest keypoints keep the measured
+noise, and a run whose keypoints are all of octave 0 (the landmark-mode simulator's, whose
+noise is one sigma for every keypoint) is the filter without it.
 
 `auto` (the default): AUTO_FACTORS when every vehicle has an IMU, every octave alike
 otherwise. Where it was measured, the UAV teams (IMU, cameras looking down) gained in
