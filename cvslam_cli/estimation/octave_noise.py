@@ -35,6 +35,7 @@ from typing import Literal
 import numpy as np
 
 from cvslam_cli.records.arrays import F64, I64
+from cvslam_cli.records.features import FeatureSet
 
 OctaveSetting = Literal["auto"] | tuple[float, ...]
 # the factors `auto` gives a team whose vehicles all have an IMU (BENCHMARKS.md)
@@ -73,6 +74,11 @@ class OctaveBearingNoise:
     def scale(self, octave: I64) -> F64:
         """(k,) the bearing noise variance factors of keypoints of these octaves (k,)."""
         return self.factors[_groups(octave, len(self.factors))]
+
+
+def match_octaves(fs: FeatureSet) -> I64:
+    """(M,) the octave of each stereo match's left keypoint in `fs`."""
+    return fs.left_octave[fs.match_left]
 
 
 def _groups(octave: I64, n_groups: int) -> I64:

@@ -73,7 +73,7 @@ from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
-from cvslam_cli.estimation.octave_noise import OctaveBearingNoise
+from cvslam_cli.estimation.octave_noise import OctaveBearingNoise, match_octaves
 from cvslam_cli.estimation.octave_noise import resolve as resolve_octaves
 from cvslam_cli.estimation.prior_map import OFFSET_BLOCK, PriorLandmarks, PriorMap
 from cvslam_cli.estimation.reactivation import Reactivation
@@ -161,7 +161,7 @@ class Slam:
         self.updater = VisualUpdater(self.state, settings.filter, settings.pixel_sigma_px)
         self.octaves = OctaveBearingNoise.of(
             resolve_octaves(settings.octave_bearing_variance, kinds)[0],
-            [v.features.left_octave[v.features.match_left] for v in vehicles],
+            [match_octaves(v.features) for v in vehicles],
         )
         self.events = EventLog(settings.event_merge_ns)
         self.cooperation = Cooperation(

@@ -47,7 +47,7 @@ from cvslam_cli.estimation.motion.models import (
     odometry_input,
 )
 from cvslam_cli.estimation.observation import StereoObservationModel
-from cvslam_cli.estimation.octave_noise import OctaveBearingNoise
+from cvslam_cli.estimation.octave_noise import OctaveBearingNoise, match_octaves
 from cvslam_cli.estimation.octave_noise import resolve as resolve_octaves
 from cvslam_cli.estimation.settings import SlamSettings, WindowSettings, landmark_bound
 from cvslam_cli.estimation.slam import (
@@ -785,7 +785,7 @@ def _log_auto_choices(
         on, why = constrained(settings.observability_constrained, kinds, prior)
         log.info("fuse: %sobservability constraint %s (%s)", who, "on" if on else "off", why)
         factors, why = resolve_octaves(settings.octave_bearing_variance, kinds)
-        octaves = [v.features.left_octave[v.features.match_left] for v in team]
+        octaves = [match_octaves(v.features) for v in team]
         if factors and OctaveBearingNoise.of(factors, octaves) is None:
             why += "; every keypoint gets x1 here"  # e.g. all of octave 0 (landmark mode)
         log.info(

@@ -14,9 +14,8 @@ freedom (4 per observation) mean what they meant with four rows. An observation'
 noise may be scaled by its keypoint's octave (`octave_noise.py`): its noise is then sigma_px^2
 (I + (b - 1) BEARING_ROWS) (`observation.BEARING_ROWS`: the bearing's part, common to both
 images), the bearing's variance b times the filter's and the disparity's and the v
-difference's as they were; the stacked R is then block-diagonal rather than a multiple of
-the identity. Rows of another kind (the sliding window's, `window_update.py`) may be stacked
-into the same update: one pass over the covariance instead of two.
+difference's as they were. Rows of another kind (the sliding window's, `window_update.py`)
+may be stacked into the same update: one pass over the covariance instead of two.
 """
 
 from __future__ import annotations
@@ -196,16 +195,15 @@ class VisualUpdater:
         # linear in H's columns, so repeated state columns add up
         cols = np.concatenate([v_idx, lm_cols.reshape(-1)])
         # observation j's noise block: scale_j (R_obs + (b_j - 1) W_obs) (`association.
-        # noise_scale`; b_j its bearing's, module docstring)
-        if bearing_scale is None:
-            R = np.kron(np.eye(k) if scale is None else np.diag(scale), R_obs)
-        else:
-            R_j = R_obs + (np.asarray(bearing_scale) - 1.0)[:, None, None] * W_obs
-            if scale is not None:
-                R_j = R_j * scale[:, None, None]
-            R_full = np.zeros((k, r, k, r))
-            R_full[np.arange(k), :, np.arange(k), :] = R_j
-            R = R_full.reshape(r * k, r * k)
+        # noise_scale`; b_j its bearing's, module docstring), block-diagonal
+        R_j = np.broadcast_to(R_obs, (k, r, r))
+        if bearing_scale is not None:
+            R_j = R_j + (np.asarray(bearing_scale) - 1.0)[:, None, None] * W_obs
+        if scale is not None:
+            R_j = R_j * scale[:, None, None]
+        R_full = np.zeros((k, r, k, r))
+        R_full[np.arange(k), :, np.arange(k), :] = R_j
+        R = R_full.reshape(r * k, r * k)
         y, h = z_obs.reshape(-1), h_obs.reshape(-1)
         if x0 is not None:
             h = h + H @ (x0 - self.state.x)[cols]
