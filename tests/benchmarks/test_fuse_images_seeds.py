@@ -19,10 +19,20 @@ single; then over all vehicle-seeds the mean cooperative RMSE, how many have a N
 (issue 15's goal 2: twice the expected 3) and how many are below their single error
 (issue 20's check). The table goes to `runs/benchmarks/fuse_images_seeds.csv` (gitignored).
 
+A change is judged against a baseline in the same run: with CVSLAM_IMAGES_BASE_SET set
+(";"-separated overrides; empty: the defaults) each seed's cooperative filter also runs at
+those settings, on the same features (`run_baseline` beside `run`), and the print adds the
+paired ratio of the two errors over the vehicle-seeds: its geometric mean, a 95 % interval
+(the per-pair log ratios' mean +- 1.96 standard errors) and on how many the change is lower.
+On these runs one association changes the evictions and everything after, moving single
+vehicle-seeds by 30-80 % either way (BENCHMARKS.md, "Fuse: another vehicle's landmark, once
+settled"): an interval that holds 1 is said to mean that the seeds do not tell the two apart.
+
 Asserted: every command succeeds (no divergence) and every error is finite; nothing about
 accuracy (DESIGN.md convention 8: figures are printed, the issue notes judge them).
 
-Run time: ~2.5 min per seed on the 2-core machine, most of it rendering and extraction;
+Run time: ~2.5 min per seed on one core, most of it rendering and extraction; seeds run
+CVSLAM_IMAGES_WORKERS (default 2) at a time, each command a process with one BLAS thread.
 CVSLAM_IMAGES_SIM names a folder that keeps the simulations and feature files between runs
 (the filters are always run again), so that comparing settings costs only the fuses.
 """
@@ -31,13 +41,17 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from tests.benchmarks.test_fuse_coop import ratio_ci
 
 REPO = Path(__file__).resolve().parents[2]
 OUT = REPO / "runs" / "benchmarks"
@@ -62,33 +76,73 @@ def prepared(base: Path, scenario: str, seed: int) -> tuple[Path, Path]:
     return sim, run
 
 
-def _seed_run(base: Path, scenario: str, seed: int, sets: list[str]) -> pd.DataFrame:
-    """One seed: simulate and extract (unless kept), both fuses, eval; its rows."""
-    _, run = prepared(base, scenario, seed)
-    overrides = [a for s in sets for a in ("--set", s)]
-    _cvslam("fuse", run, "--force", *overrides)
-    _cvslam("fuse", run, "--single", "--force", *overrides)
+def _evaluated(run: Path, seed: int, modes: dict[str, str]) -> list[dict[str, object]]:
+    """`cvslam eval RUN`: the rows of the estimates whose first word is in `modes` (renamed
+    as it says)."""
     _cvslam("eval", run, "--force")
     metrics = json.loads((run / "eval" / "metrics.json").read_text())
     rows = []
     for e in metrics["estimates"]:
         mode = e["estimate"].split()[0]  # "cooperative" / "single" / "dead"
-        if mode in ("cooperative", "single"):
+        if mode in modes:
             rows.append(
-                {"seed": seed, "vehicle": e["vehicle"], "mode": mode, "rmse_m": e["ate_rmse_m"],
-                 "nees": e["nees_mean"], "in_band": e["nees_in_band"]}
+                {"seed": seed, "vehicle": e["vehicle"], "mode": modes[mode],
+                 "rmse_m": e["ate_rmse_m"], "nees": e["nees_mean"], "in_band": e["nees_in_band"]}
             )  # fmt: skip
+    return rows
+
+
+def _baseline_run(run: Path) -> Path:
+    """A run folder beside `run` reading the same features (linked, else copied), for the
+    baseline's cooperative filter."""
+    other = run.parent / "run_baseline"
+    other.mkdir(exist_ok=True)
+    shutil.copy2(run / "run.yaml", other / "run.yaml")
+    features = other / "features"
+    if not features.exists():
+        try:
+            features.symlink_to((run / "features").resolve(), target_is_directory=True)
+        except OSError:
+            shutil.copytree(run / "features", features)
+    return other
+
+
+def _seed_run(
+    base: Path, scenario: str, seed: int, sets: list[str], baseline: list[str] | None
+) -> pd.DataFrame:
+    """One seed: simulate and extract (unless kept), both fuses, eval; with `baseline`
+    overrides also the cooperative filter at those (mode "baseline"); its rows."""
+    _, run = prepared(base, scenario, seed)
+    overrides = [a for s in sets for a in ("--set", s)]
+    _cvslam("fuse", run, "--force", *overrides)
+    _cvslam("fuse", run, "--single", "--force", *overrides)
+    rows = _evaluated(run, seed, {"cooperative": "cooperative", "single": "single"})
+    if baseline is not None:
+        other = _baseline_run(run)
+        _cvslam("fuse", other, "--force", *[a for s in baseline for a in ("--set", s)])
+        rows += _evaluated(other, seed, {"cooperative": "baseline"})
     return pd.DataFrame(rows)
+
+
+def _overrides(name: str) -> list[str] | None:
+    """The ";"-separated overrides in environment variable `name` (None when it is unset)."""
+    value = os.environ.get(name)
+    return None if value is None else [s for s in value.split(";") if s.strip()]
 
 
 def test_images_runs_over_seeds() -> None:
     scenario = os.environ.get("CVSLAM_IMAGES_SCENARIO", "uav2_paper")
     seeds = [int(s) for s in os.environ.get("CVSLAM_IMAGES_SEEDS", "1,2,3,4,5").split(",")]
-    sets = [s for s in os.environ.get("CVSLAM_IMAGES_SET", "").split(";") if s.strip()]
+    sets = _overrides("CVSLAM_IMAGES_SET") or []
+    baseline = _overrides("CVSLAM_IMAGES_BASE_SET")
+    workers = int(os.environ.get("CVSLAM_IMAGES_WORKERS", "2"))
     kept = os.environ.get("CVSLAM_IMAGES_SIM")
     with tempfile.TemporaryDirectory(prefix="cvslam_images_seeds_") as tmp:
         base = Path(kept) if kept else Path(tmp)
-        table = pd.concat([_seed_run(base, scenario, seed, sets) for seed in seeds])
+        # each seed's commands are processes of their own: threads only wait for them
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            parts = pool.map(lambda s: _seed_run(base, scenario, s, sets, baseline), seeds)
+            table = pd.concat(list(parts))
     wide = table.pivot_table(index=["seed", "vehicle"], columns="mode",
                              values=["rmse_m", "nees", "in_band"])  # fmt: skip
     coop, single = wide[("rmse_m", "cooperative")], wide[("rmse_m", "single")]
@@ -102,5 +156,17 @@ def test_images_runs_over_seeds() -> None:
         f"{int((nees <= 6).sum())} of {len(nees)}, below single on {int((coop < single).sum())} "
         f"of {len(coop)} vehicle-seeds (single mean {single.mean():.3f} m)"
     )
+    if baseline is not None:
+        ref = wide[("rmse_m", "baseline")]
+        ratio, lo, hi, below, n = ratio_ci(coop.to_numpy(float), ref.to_numpy(float))
+        ref_nees = wide[("nees", "baseline")]
+        print(
+            f"against the baseline (overrides {baseline or 'none'}): mean RMSE {ref.mean():.3f} m,"
+            f" NEES <= 6 on {int((ref_nees <= 6).sum())} of {len(ref_nees)}; the paired ratio of"
+            f" the errors (geometric mean over {n} vehicle-seeds) {ratio:.3f}, 95 % interval"
+            f" {lo:.3f}-{hi:.3f}, lower on {round(below * n)} of {n}"
+        )
+        if lo < 1.0 < hi:
+            print("the interval holds 1: these seeds do not tell the two settings apart")
     assert np.isfinite(table[["rmse_m", "nees"]].to_numpy(dtype=float)).all()
-    assert set(table["mode"]) == {"cooperative", "single"}
+    assert {"cooperative", "single"} <= set(table["mode"])
