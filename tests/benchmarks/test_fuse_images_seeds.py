@@ -169,4 +169,5 @@ def test_images_runs_over_seeds() -> None:
         if lo < 1.0 < hi:
             print("the interval holds 1: these seeds do not tell the two settings apart")
     assert np.isfinite(table[["rmse_m", "nees"]].to_numpy(dtype=float)).all()
-    assert {"cooperative", "single"} <= set(table["mode"])
+    expected = {"cooperative", "single"} | ({"baseline"} if baseline is not None else set())
+    assert set(table["mode"]) == expected
