@@ -296,6 +296,7 @@ class MapConfig:
     loop_closure_gap_s: float = opt(20.0, lo=0.0, lo_open=True)
     loop_closure_min_landmarks: int = opt(3, lo=1)
     event_merge_s: float = opt(5.0, lo=0.0)
+    joint_initialisation: bool = True
     joint_init_window_s: float = opt(0.2, lo=0.0)
     reactivation: bool = True
     reactivation_inflation: float = opt(16.0, lo=1.0)

@@ -7,6 +7,7 @@
   correction of the observing vehicle's pose as its own frames' associations
   (`association.pose_consistent`). The other vehicle's state is still at that frame (a
   vehicle's state moves only at its own frames), so the update is exact.
+  `fuse.map.joint_initialisation` false turns it off (the slam loop does not call it).
 - Localisation of a vehicle whose initial pose is unknown (extension beyond the paper) in
   the landmarks the others mapped: `unknown_pose.py`.
 - NH-infinity's bound is put on the vehicles whose pose is known (`bounded_vehicles`): a

@@ -57,6 +57,7 @@ class SlamSettings:
     loop_closure_gap_ns: int = 20_000_000_000
     loop_closure_min_landmarks: int = 3
     event_merge_ns: int = 5_000_000_000
+    joint_initialisation: bool = True  # cooperation.Cooperation.joint_initialisation
     joint_init_window_ns: int = 200_000_000
     reactivation: bool = True  # evicted landmarks brought back (reactivation.py)
     observability_constrained: ConstrainedSetting = "auto"  # gauge.constrained

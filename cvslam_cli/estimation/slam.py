@@ -404,7 +404,7 @@ class Slam:
         slots, out.new_rows = self.mapper.add(
             run, self.runs, frame, confirmed, priority, out.updated_slots, want
         )
-        if len(slots):
+        if len(slots) and self.settings.joint_initialisation:
             self.cooperation.joint_initialisation(run, slots, frame.stamp_ns)
         out.type3 = len(slots)
 

@@ -544,6 +544,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         loop_closure_gap_ns=int(m.loop_closure_gap_s * 1e9),
         loop_closure_min_landmarks=m.loop_closure_min_landmarks,
         event_merge_ns=int(m.event_merge_s * 1e9),
+        joint_initialisation=m.joint_initialisation,
         joint_init_window_ns=int(m.joint_init_window_s * 1e9),
         reactivation=m.reactivation,
         observability_constrained=cfg.observability_constrained,

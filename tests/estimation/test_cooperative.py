@@ -179,3 +179,18 @@ def test_unknown_pose_of_a_vehicle_not_in_the_run_is_an_error(paper_run, tmp_pat
     r = cvslam("fuse", run, "--force", "--set", "fuse.initial.unknown={uav9: {}}")
     assert r.code == 1
     assert r.err.count("\n") == 1 and "fuse.initial.unknown" in r.err and "uav9" in r.err
+
+
+def test_joint_initialisation_can_be_turned_off(paper_run, tmp_path):
+    """The default run initialises landmarks jointly (UAV2 starts next to UAV1); with
+    fuse.map.joint_initialisation false no landmark is, and the run says which it used."""
+    events = pd.read_csv(paper_run / "fuse" / "events.csv")
+    assert (events.event == "joint_initialisation").any()
+    run = tmp_path / "uav2"
+    shutil.copytree(paper_run, run, ignore=shutil.ignore_patterns("fuse*", "eval*"))
+    _main("-q", "fuse", run, "--force", "--set", "fuse.map.joint_initialisation=false")
+    events = pd.read_csv(run / "fuse" / "events.csv")
+    assert not (events.event == "joint_initialisation").any()
+    assert (events.event == "cross_vehicle").any()  # still one cooperative filter
+    config = yaml.safe_load((run / "fuse" / "fuse.config.yaml").read_text())
+    assert config["fuse"]["map"]["joint_initialisation"] is False
