@@ -113,15 +113,19 @@ def _seed_run(
     """One seed: simulate and extract (unless kept), both fuses, eval; with `baseline`
     overrides also the cooperative filter at those (mode "baseline"); its rows."""
     _, run = prepared(base, scenario, seed)
-    overrides = [a for s in sets for a in ("--set", s)]
-    _cvslam("fuse", run, "--force", *overrides)
-    _cvslam("fuse", run, "--single", "--force", *overrides)
+    _cvslam("fuse", run, "--force", *_set_args(sets))
+    _cvslam("fuse", run, "--single", "--force", *_set_args(sets))
     rows = _evaluated(run, seed, {"cooperative": "cooperative", "single": "single"})
     if baseline is not None:
         other = _baseline_run(run)
-        _cvslam("fuse", other, "--force", *[a for s in baseline for a in ("--set", s)])
+        _cvslam("fuse", other, "--force", *_set_args(baseline))
         rows += _evaluated(other, seed, {"cooperative": "baseline"})
     return pd.DataFrame(rows)
+
+
+def _set_args(sets: list[str]) -> list[str]:
+    """`--set K=V` for each override."""
+    return [a for s in sets for a in ("--set", s)]
 
 
 def _overrides(name: str) -> list[str] | None:
