@@ -92,10 +92,10 @@ def _evaluated(run: Path, seed: int, modes: dict[str, str]) -> list[dict[str, ob
     return rows
 
 
-def _baseline_run(run: Path) -> Path:
-    """A run folder beside `run` reading the same features (linked, else copied), for the
-    baseline's cooperative filter."""
-    other = run.parent / "run_baseline"
+def _baseline_run(run: Path, name: str = "run_baseline") -> Path:
+    """A run folder `name` beside `run` reading the same features (linked, else copied),
+    for the baseline's cooperative filter."""
+    other = run.parent / name
     other.mkdir(exist_ok=True)
     shutil.copy2(run / "run.yaml", other / "run.yaml")
     features = other / "features"
