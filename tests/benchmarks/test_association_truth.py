@@ -27,7 +27,7 @@ extracted there unless kept). The true depth is simulated once more beside it (t
 images, with depth: ~0.8 GB per seed), read at the matches into `true_depth.npz` and
 deleted; the cooperative filter runs in `run_truth` on the same features with the overrides
 CVSLAM_TRUTH_SET (";"-separated). Environment: CVSLAM_TRUTH_SCENARIO (default uav2_paper),
-CVSLAM_TRUTH_SEEDS (default "1"). Time: ~2 min per seed kept, ~4 from nothing.
+CVSLAM_TRUTH_SEEDS (default "1"). Time: ~40 s per seed kept (its fuse), ~4 min from nothing.
 """
 
 from __future__ import annotations
@@ -98,32 +98,33 @@ def _depth_at_matches(depth_file: Path, fs: FeatureSet) -> np.ndarray:
     return out
 
 
-def _true_points(
-    sim: Path, fs: FeatureSet, depth: np.ndarray, obs: StereoObservationModel,
-    stamps_ns: np.ndarray, z_px: np.ndarray,
-) -> np.ndarray:  # fmt: skip
-    """(n, 3) nav-frame true points under the left keypoints z_px[:, :2] of frames at
-    stamps_ns (each one of the frame's stereo matches)."""
+def _frames(fs: FeatureSet, stamps_ns: np.ndarray) -> list[np.ndarray]:
+    """The rows of stamps_ns (n,) grouped by the frame of fs they fall on (exactly)."""
     f = np.searchsorted(fs.frame_stamp_ns, stamps_ns)
     assert np.all(fs.frame_stamp_ns[np.clip(f, 0, len(fs.frame_stamp_ns) - 1)] == stamps_ns)
-    row = np.empty(len(f), dtype=np.int64)
-    for frame in np.unique(f):
-        k = np.flatnonzero(f == frame)
+    return [np.flatnonzero(f == frame) for frame in np.unique(f)]
+
+
+def _true_points(
+    fs: FeatureSet, depth: np.ndarray, obs: StereoObservationModel, frames: list[np.ndarray],
+    p: np.ndarray, e: np.ndarray, stamps_ns: np.ndarray, z_px: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """(n, 3) nav-frame true points under the left keypoints z_px[:, :2] (each one of its
+    frame's stereo matches), the camera at the true poses p, e (n, 3) of `frames` (rows of
+    the n observations, one group per frame)."""
+    K = obs.K[0]
+    out = np.empty((len(stamps_ns), 3))
+    for k in frames:
+        frame = int(np.searchsorted(fs.frame_stamp_ns, stamps_ns[k[0]]))
         rows = np.arange(fs.match_offsets[frame], fs.match_offsets[frame + 1])
         uv = fs.left_uv_px[fs.match_left[rows]].astype(float)
         d = np.linalg.norm(z_px[k, None, :2] - uv[None], axis=2)
         nearest = np.argmin(d, axis=1)
         assert np.all(d[np.arange(len(k)), nearest] < 1e-2), "an observation is no match"
-        row[k] = rows[nearest]
-    K = obs.K[0]
-    zc = depth[row]
-    u, v = z_px[:, 0], z_px[:, 1]
-    y = (v - K[1, 2]) / K[1, 1] * zc
-    x = (u - K[0, 2] - K[0, 1] * y / zc) / K[0, 0] * zc
-    p, e = _true_poses(sim, fs.vehicle, stamps_ns)
-    out = np.empty((len(f), 3))
-    for i in range(len(f)):
-        out[i] = obs.landmark_jacobians(p[i], e[i], np.array([[x[i], y[i], zc[i]]]))[0][0]
+        zc = depth[rows[nearest]]
+        y = (z_px[k, 1] - K[1, 2]) / K[1, 1] * zc
+        x = (z_px[k, 0] - K[0, 2] - K[0, 1] * y / zc) / K[0, 0] * zc
+        out[k] = obs.landmark_jacobians(p[k[0]], e[k[0]], np.stack([x, y, zc], axis=1))[0]
     return out
 
 
@@ -131,14 +132,16 @@ def _residuals(
     sim: Path, run: Path, t: ObservationTable, depths: dict[str, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
     """(residual px (N,), cross (N,) bool: by another vehicle than the landmark's reference)."""
-    models, sets = {}, {}
-    for v in t.vehicles:
-        fs, _ = load_features(run / "features" / f"{v}.npz")
-        models[v], sets[v] = StereoObservationModel.from_rig(stereo_rig(fs.rig)), fs
     points = np.full((len(t.stamp_ns), 3), np.nan)
+    views = []  # per vehicle: (rows, model, frames, true p, true e)
     for i, v in enumerate(t.vehicles):
+        fs, _ = load_features(run / "features" / f"{v}.npz")
+        model = StereoObservationModel.from_rig(stereo_rig(fs.rig))
         k = np.flatnonzero(t.vehicle == i)
-        points[k] = _true_points(sim, sets[v], depths[v], models[v], t.stamp_ns[k], t.z_px[k])
+        frames = _frames(fs, t.stamp_ns[k])
+        p, e = _true_poses(sim, v, t.stamp_ns[k])
+        points[k] = _true_points(fs, depths[v], model, frames, p, e, t.stamp_ns[k], t.z_px[k])
+        views.append((k, model, frames, p, e))
     # each landmark's reference: the first stamp, then the vehicle with most observations
     n_by = pd.Series(1, index=pd.MultiIndex.from_arrays([t.landmark_id, t.vehicle])).groupby(
         level=[0, 1]).sum()  # fmt: skip
@@ -150,12 +153,11 @@ def _residuals(
     ref_row = ref.reindex(t.landmark_id).to_numpy()
     cross = t.vehicle != t.vehicle[ref_row]
     residual = np.full(len(t.stamp_ns), np.nan)
-    for i, v in enumerate(t.vehicles):
-        k = np.flatnonzero(t.vehicle == i)
-        p, e = _true_poses(sim, v, t.stamp_ns[k])
-        for j, kk in enumerate(k):
-            zp = models[v].predict(p[j], e[j], points[ref_row[kk]][None])[0][0]
-            residual[kk] = np.hypot(*(t.z_px[kk, :2] - zp[:2]))
+    for k, model, frames, p, e in views:
+        for g in frames:
+            rows = k[g]
+            zp = model.predict(p[g[0]], e[g[0]], points[ref_row[rows]])[0]
+            residual[rows] = np.hypot(*(t.z_px[rows, :2] - zp[:, :2]).T)
     return residual, cross
 
 
