@@ -283,8 +283,8 @@ class MapConfig:
     max_landmarks: int = opt(150, lo=1)
     landmarks_per_added_vehicle: int = opt(100, lo=0)
     max_landmarks_total: int = opt(400, lo=1)
-    max_updates_per_frame: int = opt(30, lo=1)
-    target_tracked: int = opt(30, lo=0)
+    max_updates_per_frame: Literal["auto"] | int = opt("auto", lo=1)
+    target_tracked: Literal["auto"] | int = opt("auto", lo=0)
     max_new_per_frame: int = opt(15, lo=0)
     max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)
     new_landmark_priority: Literal["previous_frame", "current_frame"] = "previous_frame"

@@ -62,10 +62,10 @@ class NewLandmarks:
         # when it was cloned (a new clone once it is older than settings.anchor_span_ns)
         self._anchors: dict[int, tuple[int | None, int]] = {}
 
-    def wanted(self, n_updated: int) -> int:
-        """How many new landmarks a frame that updated `n_updated` should add."""
-        s = self.settings
-        return min(s.max_new_per_frame, max(0, s.target_tracked - n_updated))
+    def wanted(self, n_updated: int, target_tracked: int) -> int:
+        """How many new landmarks a frame that updated `n_updated` of `target_tracked`
+        should add."""
+        return min(self.settings.max_new_per_frame, max(0, target_tracked - n_updated))
 
     def confirm(
         self, run: VehicleRun, frame: FrameMatches, free: NDArray[np.bool_]

@@ -9,6 +9,7 @@ from cvslam_cli.estimation.filters import FilterSettings
 from cvslam_cli.estimation.gauge import ConstrainedSetting
 from cvslam_cli.estimation.landmark_coordinates import CoordinatesSetting
 from cvslam_cli.estimation.octave_noise import OctaveSetting
+from cvslam_cli.estimation.update_budget import UpdatesSetting
 
 
 @dataclass(frozen=True)
@@ -46,8 +47,10 @@ class SlamSettings:
     max_landmarks: int = 150  # with one vehicle in the filter ...
     landmarks_per_added_vehicle: int = 100  # ... plus this many per other vehicle ...
     max_landmarks_total: int = 400  # ... up to this many in all
-    max_updates_per_frame: int = 30
-    target_tracked: int = 30
+    # a vehicle's frame: at most this many landmarks updated, new ones while fewer were
+    # (update_budget.resolve: auto by its motion model)
+    max_updates_per_frame: UpdatesSetting = "auto"
+    target_tracked: UpdatesSetting = "auto"
     max_new_per_frame: int = 15
     max_new_depth_sigma_ratio: float = 0.25
     new_landmark_priority: str = "previous_frame"  # or "current_frame" (new_landmarks.py)

@@ -14,8 +14,8 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
    innovation covariances and matched to the frame's stereo matches (`association.py`);
    evicted landmarks that the unclaimed matches re-observe are brought back into the state
    first (`reactivation.py`: a loop closure on ground whose landmarks left the state);
-   the accepted ones (at most `max_updates_per_frame`, spread over the image, the
-   longest-unseen first) are classified into the paper's types 1 and 2
+   the accepted ones (at most `max_updates_per_frame`, `update_budget.py`, spread over the
+   image, the longest-unseen first) are classified into the paper's types 1 and 2
    (`association.classify`). A vehicle whose pose is not known yet is localised in the
    shared map instead (`cooperation.py`);
 3. update: one stacked EKF or NH-infinity update with those observations (eq. 19,
@@ -81,6 +81,7 @@ from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.unknown_pose import UnknownPoseLocaliser
 from cvslam_cli.estimation.update import VisualUpdater
+from cvslam_cli.estimation.update_budget import resolve as resolve_budget
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
 from cvslam_cli.estimation.window_update import SlidingWindow
 from cvslam_cli.records.arrays import F64, I64
@@ -158,6 +159,10 @@ class Slam:
         )
         self.book = LandmarkBook(len(vehicles))
         self.runs = [VehicleRun.start(v, i) for i, v in enumerate(vehicles)]
+        # the landmarks each frame updates and keeps tracked
+        self.budget = resolve_budget(
+            settings.max_updates_per_frame, settings.target_tracked, kinds
+        )[0]
         self.updater = VisualUpdater(self.state, settings.filter, settings.pixel_sigma_px)
         self.octaves = OctaveBearingNoise.of(
             resolve_octaves(settings.octave_bearing_variance, kinds)[0],
@@ -287,13 +292,13 @@ class Slam:
         if not ok.any():
             out.types = classify(assoc.near_landmark).type
             return None, out
-        # the longest-unseen first, spread over the image, at most max_updates_per_frame
+        # the longest-unseen first, spread over the image, at most the budget's
         last_seen = book.last_seen_ns[ids_vis[assoc.pred_index[ok]], run.index]
         absent_ns = absence_ns(last_seen, frame.stamp_ns)
         order = spread_order(
             frame.z[assoc.match_index[ok], :2], -absent_ns.astype(float),
             tuple(run.vin.features.rig.size_px[0]),
-        )[: s.max_updates_per_frame]  # fmt: skip
+        )[: self.budget.max_updates]  # fmt: skip
         pred_rows = assoc.pred_index[ok][order]
         match_rows = assoc.match_index[ok][order]
         types = classify(
@@ -395,7 +400,7 @@ class Slam:
     def _map(self, run: VehicleRun, frame: FrameMatches, out: FrameOutcome) -> None:
         """Step 4: new landmarks (type 3) from the confirmed candidates, with joint
         initialisation (none while, or in the frame where, the vehicle is localised)."""
-        want = self.mapper.wanted(len(out.updated_slots))
+        want = self.mapper.wanted(len(out.updated_slots), self.budget.target_tracked)
         if not want:  # confirming costs an association: only when wanted
             return
         confirmed, priority = self.mapper.confirm(run, frame, out.types == TYPE_3)

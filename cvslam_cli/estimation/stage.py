@@ -57,6 +57,7 @@ from cvslam_cli.estimation.slam import (
     dead_reckoning_track,
     merge_results,
 )
+from cvslam_cli.estimation.update_budget import resolve as resolve_budget
 from cvslam_cli.estimation.vehicle import VehicleInput
 from cvslam_cli.features.pixel_noise import PixelNoise, pixel_noise, sample_pixel_noise
 from cvslam_cli.geometry.camera import stereo_rig
@@ -290,11 +291,10 @@ def _log_settings(
         settings.max_descriptor_distance,
     )
     log.debug(
-        "fuse: map: at most %d landmarks in the state with %d vehicle(s), %d updates and %d "
-        "new landmarks per frame, new ones ranked by %s (fuse.map)",
+        "fuse: map: at most %d landmarks in the state with %d vehicle(s), %d new landmarks "
+        "per frame, new ones ranked by %s (fuse.map)",
         landmark_bound(settings, len(inputs)),
         len(inputs),
-        settings.max_updates_per_frame,
         settings.max_new_per_frame,
         settings.new_landmark_priority,
     )
@@ -768,15 +768,17 @@ def _vehicle_fuse(
 def _log_auto_choices(
     settings: SlamSettings, inputs: list[VehicleInput], single: bool, prior: bool
 ) -> dict[str, dict[str, Any]]:
-    """Log what the landmark coordinates, the observability constraint and the bearing
-    noise by octave resolve to (auto: by the motion models of the vehicles in one filter, as
-    `Slam` resolves them: every vehicle's own with --single) and return it per vehicle for
-    run.yaml."""
+    """Log what the landmark coordinates, the observability constraint, the bearing noise
+    by octave and the landmarks a frame resolve to (auto: by the motion models of the
+    vehicles in one filter, as `Slam` resolves them: every vehicle's own with --single) and
+    return it per vehicle for run.yaml."""
     teams = [[v] for v in inputs] if single else [inputs]
     chosen: dict[str, dict[str, Any]] = {
         "landmark_coordinates": {},
         "observability_constrained": {},
         "octave_bearing_variance": {},
+        "max_updates_per_frame": {},
+        "target_tracked": {},
     }
     for team in teams:
         kinds = [v.model.kind for v in team]
@@ -795,10 +797,20 @@ def _log_auto_choices(
             " / ".join(f"x{b:g}" for b in factors) if factors else "alike",
             why,
         )
+        budget, why = resolve_budget(settings.max_updates_per_frame, settings.target_tracked, kinds)
+        log.info(
+            "fuse: %sat most %d landmarks updated a frame, new ones while fewer than %d (%s)",
+            who,
+            budget.max_updates,
+            budget.target_tracked,
+            why,
+        )
         for v in team:
             chosen["landmark_coordinates"][v.name] = coords
             chosen["observability_constrained"][v.name] = on
             chosen["octave_bearing_variance"][v.name] = list(factors)
+            chosen["max_updates_per_frame"][v.name] = budget.max_updates
+            chosen["target_tracked"][v.name] = budget.target_tracked
     return chosen
 
 

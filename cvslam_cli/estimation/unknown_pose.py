@@ -17,7 +17,12 @@ Each frame of the vehicle, until it is localised:
    enough;
 4. the inlier prior landmarks are inserted (as many as fit, `PriorLandmarks.reinsert`), the
    vehicle is relinearised at the pose found (its covariance, the broad prior, is kept) and
-   updated with every inlier in the state: from then on it is an ordinary vehicle.
+   updated with every inlier in the state: from then on it is an ordinary vehicle. What the
+   prior does not know (`fuse.initial.unknown`: position and heading) is taken from the pose
+   found, roll and pitch stay the state's: they are known as at any start (and from gravity
+   with an IMU), and a camera looking down trades tilt for position over a small patch of
+   map (PnP's pitch 1-2 degrees off, its position metres off, on the prior-map test's
+   scene; BENCHMARKS.md "Fuse: 60 landmarks a frame for a team with IMUs").
 The localisation (and the prior landmarks brought in) are logged as events.
 """
 
@@ -159,6 +164,9 @@ class UnknownPoseLocaliser:
         s, st, book, vin = self.settings, self.state, self.book, run.vin
         self._pending.pop(vin.name, None)
         prior = VehiclePose.of(st, vin)
+        # what the prior does not know (position, heading) from the pose found; roll and
+        # pitch stay the state's (module docstring, step 4)
+        euler = np.array([prior.euler_rad[0], prior.euler_rad[1], euler[2]])
         st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
         st.reset_gauge(vin.name)
         from_prior = found.landmark_rows >= n_state

@@ -69,6 +69,7 @@ from cvslam_cli.estimation.motion.models import InitialUncertainty, InsModel, pr
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.slam import Slam, SlamResult
 from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.update_budget import resolve as resolve_budget
 from cvslam_cli.geometry.rotations import interpolate_positions
 from cvslam_cli.io.features_file import load_features
 from cvslam_cli.io.logs import LogSet
@@ -286,7 +287,7 @@ def _build_case(cfg: Config, L: int, obs: StereoObservationModel) -> Case:
     # one frame's stacked observation of max_updates_per_frame landmarks spread over the
     # state (eq. 19)
     x_new, F, Q = propagate(model, st.vehicle_x(VEHICLE).copy(), imu(), dts)
-    k = cfg.fuse.map.max_updates_per_frame
+    k = _default_updates(cfg)
     slots = np.sort(rng.choice(L, size=k, replace=False))
     x_v = st.vehicle_x(VEHICLE)
     p, euler = model.pose(x_v)
@@ -642,7 +643,7 @@ def test_whole_run_realtime(cfg: Config, sim_dir: Path) -> None:
     m = cfg.fuse.map
     _table(
         f"whole run, uav2_paper ({', '.join(SIM_SETS)}), {VEHICLE} alone, default settings "
-        f"(max_landmarks {m.max_landmarks}, max_updates_per_frame {m.max_updates_per_frame}), "
+        f"(max_landmarks {m.max_landmarks}, max_updates_per_frame {_default_updates(cfg)}), "
         f"fresh process per filter; real time = flight s / wall s, target >= {REALTIME_TARGET:g}x",
         ["filter", "BLAS threads", "run in process", *RUN_HEAD, "load at start"],
         rows,
@@ -654,11 +655,17 @@ def test_whole_run_realtime(cfg: Config, sim_dir: Path) -> None:
         )
 
 
+def _default_updates(cfg: Config) -> int:
+    """The landmarks a frame of the benchmark's UAV (an IMU) updates at the defaults."""
+    m = cfg.fuse.map
+    return resolve_budget(m.max_updates_per_frame, m.target_tracked, ["ins"])[0].max_updates
+
+
 def test_whole_run_map_size(cfg: Config, sim_dir: Path) -> None:
     """Map bounds around the defaults (1 BLAS thread, fresh process): NH-infinity, and at
     (200, 40) and (150, 30) both filters with the in-place update and with the pure
     reference functions (the code path before it; same results)."""
-    default = (cfg.fuse.map.max_landmarks, cfg.fuse.map.max_updates_per_frame)
+    default = (cfg.fuse.map.max_landmarks, _default_updates(cfg))
     specs = [RunSpec("hinf", lm, upd) for lm, upd in sorted({(100, 20), default}, reverse=True)]
     specs = [
         RunSpec(kind, lm, upd, pure=pure)

@@ -96,6 +96,8 @@ def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cv
     # what auto chose for these two IMU vehicles, per vehicle
     assert summary["landmark_coordinates"] == {"uav1": "inverse_depth", "uav2": "inverse_depth"}
     assert summary["observability_constrained"] == {"uav1": True, "uav2": True}
+    assert summary["max_updates_per_frame"] == {"uav1": 60, "uav2": 60}
+    assert summary["target_tracked"] == {"uav1": 60, "uav2": 60}
     for v in ("uav1", "uav2"):
         s = summary["vehicles"][v]
         assert s["model"] == "ins"
@@ -113,6 +115,9 @@ def test_fuse_writes_every_output_and_beats_dead_reckoning(sim_run, tmp_path, cv
     assert set(tl.vehicle) == {"uav1", "uav2"}
     assert tl.stamp_ns.is_monotonic_increasing
     assert (tl.type1 > 0).mean() > 0.9 and tl.type3.sum() > 0
+    # a frame of a team with IMUs updates up to 60 landmarks (fuse.map.max_updates_per_frame auto)
+    updated = tl.type1 + tl.type2
+    assert updated.max() == 60 and (updated > 30).mean() > 0.5
     assert (tl.landmarks_in_state <= 150 + 100).all()  # fuse.map: 2 vehicles
     mp = read_map_csv(out / "map.csv")
     assert len(mp) == tl.landmarks_mapped.iloc[-1]
@@ -231,12 +236,9 @@ def test_a_diverging_filter_is_reported_with_its_time(sim_run, tmp_path, cvslam)
     assert r.code == 1
     assert "diverged" in r.err and "s into the run" in r.err and "NIS" in r.err
     # besides the lines saying what "auto" chose (motion model, landmark coordinates, the
-    # observability constraint, the bearing noise by octave)
-    said = [
-        ln
-        for ln in r.err.strip().splitlines()
-        if not any(w in ln for w in ("model", "coordinates", "constraint", "octave"))
-    ]
+    # observability constraint, the bearing noise by octave, the landmarks a frame)
+    chose = ("model", "coordinates", "constraint", "octave", "updated a frame")
+    said = [ln for ln in r.err.strip().splitlines() if not any(w in ln for w in chose)]
     assert len(said) == 1 and said[0].startswith("cvslam: error:")
     assert not (run / "fuse").exists() and not (run / "fuse.partial").exists()
 
