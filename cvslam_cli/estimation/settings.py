@@ -48,7 +48,7 @@ class SlamSettings:
     landmarks_per_added_vehicle: int = 100  # ... plus this many per other vehicle ...
     max_landmarks_total: int = 400  # ... up to this many in all
     # a vehicle's frame: at most this many landmarks updated, new ones while fewer were
-    # (update_budget.resolve: auto by its motion model)
+    # (update_budget.resolve: auto by the motion models of the vehicles in the filter)
     max_updates_per_frame: UpdatesSetting = "auto"
     target_tracked: UpdatesSetting = "auto"
     max_new_per_frame: int = 15
