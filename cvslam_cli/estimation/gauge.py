@@ -59,7 +59,7 @@ from typing import Literal
 import numpy as np
 import scipy.linalg
 
-from cvslam_cli.estimation.motion.models import MotionModel
+from cvslam_cli.estimation.motion.models import MotionModel, all_inertial
 from cvslam_cli.records.arrays import F64
 
 # Columns of N: translations north, east, down, then the turn about the down axis.
@@ -89,7 +89,7 @@ def _setting(setting: ConstrainedSetting, motion_kinds: Sequence[str]) -> tuple[
         return setting, "fuse.observability_constrained"
     if setting != "auto":
         raise ValueError(f"observability_constrained: expected 'auto' or a bool, got {setting!r}")
-    if motion_kinds and all(k == "ins" for k in motion_kinds):
+    if all_inertial(motion_kinds):
         return True, "auto: every vehicle has an IMU"
     return False, "auto: a vehicle without an IMU"
 

@@ -37,6 +37,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from cvslam_cli.estimation.motion.models import all_inertial
 from cvslam_cli.geometry.rotations import euler_zyx_matrices
 from cvslam_cli.records.arrays import F64
 
@@ -151,7 +152,7 @@ def resolve(
     "Fuse: consistency (issue 15)")."""
     if setting != "auto":
         return setting, "fuse.map.landmark_coordinates"
-    if motion_kinds and all(k == "ins" for k in motion_kinds):
+    if all_inertial(motion_kinds):
         return "inverse_depth", "auto: every vehicle has an IMU"
     return "cartesian", "auto: a vehicle without an IMU"
 

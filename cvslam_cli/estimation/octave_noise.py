@@ -34,6 +34,7 @@ from typing import Literal
 
 import numpy as np
 
+from cvslam_cli.estimation.motion.models import all_inertial
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.features import FeatureSet
 
@@ -47,7 +48,7 @@ def resolve(setting: OctaveSetting, motion_kinds: Sequence[str]) -> tuple[tuple[
     motion models `motion_kinds`, and why (module docstring)."""
     if setting != "auto":
         return tuple(setting), "fuse.association.octave_bearing_variance"
-    if motion_kinds and all(k == "ins" for k in motion_kinds):
+    if all_inertial(motion_kinds):
         return AUTO_FACTORS, "auto: every vehicle has an IMU"
     return (), "auto: a vehicle without an IMU"
 

@@ -25,6 +25,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+from cvslam_cli.estimation.motion.models import all_inertial
+
 UpdatesSetting = Literal["auto"] | int
 # the landmarks a frame updates with `auto` (module docstring, BENCHMARKS.md)
 AUTO_WITH_IMU = 60
@@ -46,7 +48,7 @@ def resolve(
     """The budget the settings give each frame of a team whose vehicles have motion models
     `motion_kinds`, and why (module docstring)."""
     if max_updates == "auto":
-        imu = bool(motion_kinds) and all(k == "ins" for k in motion_kinds)
+        imu = all_inertial(motion_kinds)
         n = AUTO_WITH_IMU if imu else AUTO_WITHOUT_IMU
         why = "auto: " + ("every vehicle has an IMU" if imu else "a vehicle without an IMU")
     else:

@@ -98,24 +98,23 @@ def _depth_at_matches(depth_file: Path, fs: FeatureSet) -> np.ndarray:
     return out
 
 
-def _frames(fs: FeatureSet, stamps_ns: np.ndarray) -> list[np.ndarray]:
-    """The rows of stamps_ns (n,) grouped by the frame of fs they fall on (exactly)."""
+def _frames(fs: FeatureSet, stamps_ns: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """(frame of fs, rows of stamps_ns (n,) on it) for each frame they fall on (exactly)."""
     f = np.searchsorted(fs.frame_stamp_ns, stamps_ns)
     assert np.all(fs.frame_stamp_ns[np.clip(f, 0, len(fs.frame_stamp_ns) - 1)] == stamps_ns)
-    return [np.flatnonzero(f == frame) for frame in np.unique(f)]
+    return [(int(frame), np.flatnonzero(f == frame)) for frame in np.unique(f)]
 
 
 def _true_points(
-    fs: FeatureSet, depth: np.ndarray, obs: StereoObservationModel, frames: list[np.ndarray],
-    p: np.ndarray, e: np.ndarray, stamps_ns: np.ndarray, z_px: np.ndarray,
+    fs: FeatureSet, depth: np.ndarray, obs: StereoObservationModel,
+    frames: list[tuple[int, np.ndarray]], p: np.ndarray, e: np.ndarray, z_px: np.ndarray,
 ) -> np.ndarray:  # fmt: skip
     """(n, 3) nav-frame true points under the left keypoints z_px[:, :2] (each one of its
     frame's stereo matches), the camera at the true poses p, e (n, 3) of `frames` (rows of
     the n observations, one group per frame)."""
     K = obs.K[0]
-    out = np.empty((len(stamps_ns), 3))
-    for k in frames:
-        frame = int(np.searchsorted(fs.frame_stamp_ns, stamps_ns[k[0]]))
+    out = np.empty((len(z_px), 3))
+    for frame, k in frames:
         rows = np.arange(fs.match_offsets[frame], fs.match_offsets[frame + 1])
         uv = fs.left_uv_px[fs.match_left[rows]].astype(float)
         d = np.linalg.norm(z_px[k, None, :2] - uv[None], axis=2)
@@ -140,7 +139,7 @@ def _residuals(
         k = np.flatnonzero(t.vehicle == i)
         frames = _frames(fs, t.stamp_ns[k])
         p, e = _true_poses(sim, v, t.stamp_ns[k])
-        points[k] = _true_points(fs, depths[v], model, frames, p, e, t.stamp_ns[k], t.z_px[k])
+        points[k] = _true_points(fs, depths[v], model, frames, p, e, t.z_px[k])
         views.append((k, model, frames, p, e))
     # each landmark's reference: the first stamp, then the vehicle with most observations
     n_by = pd.Series(1, index=pd.MultiIndex.from_arrays([t.landmark_id, t.vehicle])).groupby(
@@ -154,7 +153,7 @@ def _residuals(
     cross = t.vehicle != t.vehicle[ref_row]
     residual = np.full(len(t.stamp_ns), np.nan)
     for k, model, frames, p, e in views:
-        for g in frames:
+        for _, g in frames:
             rows = k[g]
             zp = model.predict(p[g[0]], e[g[0]], points[ref_row[rows]])[0]
             residual[rows] = np.hypot(*(t.z_px[rows, :2] - zp[:, :2]).T)

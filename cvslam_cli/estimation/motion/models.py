@@ -24,6 +24,7 @@ Euler angles are not wrapped by the models (the state is continuous); compare th
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal, Protocol, runtime_checkable
@@ -121,6 +122,12 @@ def _vec3(a: F64, name: str) -> F64:
 
 
 # ----------------------------------------------------------------------------- INS
+
+
+def all_inertial(motion_kinds: Sequence[str]) -> bool:
+    """Whether a team whose vehicles have these motion models (`MotionModel.kind`) is not
+    empty and every vehicle has an IMU: what the `auto` settings of a team go by."""
+    return bool(motion_kinds) and all(k == "ins" for k in motion_kinds)
 
 
 @dataclass(frozen=True)
