@@ -770,6 +770,14 @@ def do_fuse(
                 v.localised_after_s,
                 v.localised_inliers,
             )
+        if v.lost:
+            log.warning(
+                "%s: lost %d time(s) -- the map contradicted its pose -- and found again in "
+                "the map %d time(s) (fuse/events.csv: lost, relocalisation)",
+                name,
+                v.lost,
+                v.relocalised,
+            )
         if v.first_prior_s is not None:
             log.info(
                 "%s: %d prior-map landmarks brought into the filter, the first %.2f s after "

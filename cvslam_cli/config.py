@@ -327,6 +327,29 @@ class DivergenceConfig:
 
 
 @dataclass(frozen=True)
+class RelocalisationConfig:
+    """A vehicle whose pose the map contradicts (estimation/relocalisation.py): its frame is
+    located in the map by appearance (descriptors, PnP) every `check_interval_s`, and at
+    every frame that tracked too few of the landmarks in view; a pose that the filter's
+    covariance rejects at `gate_probability` (6 dof) in `fuse.initial.localise_confirm_frames`
+    consecutive frames, or a filter whose innovations say it lost the map
+    (`fuse.divergence`), makes the vehicle lost: its position, velocity and attitude are
+    forgotten (standard deviations `position_sigma_m`, `velocity_sigma_m_s`,
+    `attitude_sigma_rad`), so are the landmarks it alone mapped since it last tracked the
+    map, and it is found again in the map as for an unknown initial pose. After
+    `max_per_vehicle` losses of one vehicle the next is a divergence. `enabled` false: no
+    check, and a lost map is a divergence."""
+
+    enabled: bool = True
+    check_interval_s: float = opt(1.0, lo=0.0, lo_open=True)
+    gate_probability: float = opt(0.999999, lo=0.5, hi=1.0, lo_open=True)
+    position_sigma_m: float = opt(20.0, lo=0.0, lo_open=True)
+    velocity_sigma_m_s: float = opt(5.0, lo=0.0, lo_open=True)
+    attitude_sigma_rad: float = opt(0.2, lo=0.0, lo_open=True)
+    max_per_vehicle: int = opt(5, lo=0)
+
+
+@dataclass(frozen=True)
 class FuseConfig:
     """`cvslam fuse`. `prior_map`: a map saved by an earlier run to start from (its run
     directory, whose `fuse/map.npz` is read, or a `map.npz`; empty: none)."""
@@ -341,6 +364,7 @@ class FuseConfig:
     map: MapConfig = opt(MapConfig())
     window: WindowConfig = opt(WindowConfig())
     divergence: DivergenceConfig = opt(DivergenceConfig())
+    relocalisation: RelocalisationConfig = opt(RelocalisationConfig())
 
 
 @dataclass(frozen=True)

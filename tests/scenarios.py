@@ -194,11 +194,13 @@ def ekf_on_simulation(
     cfg: Any,
     edit: Callable[[Any], Any] | None = None,
     initial_error_seed: int | None = None,
+    edit_inputs: Callable[[list[Any]], list[Any]] | None = None,
 ) -> tuple[Any, Any]:
     """The EKF over a simulated one-UAV run (`uav1`, landmark mode) with config `cfg`: its
     SlamResult and uav1's ground-truth PoseTable (one BLAS thread: the Monte Carlo tests'
     figures stay bit for bit); `edit` changes the feature set first (e.g. `blackout`);
-    `initial_error_seed`: start from a draw of the prior (`from_prior`), not the truth."""
+    `initial_error_seed`: start from a draw of the prior (`from_prior`), not the truth;
+    `edit_inputs` changes the vehicle inputs (e.g. their motion samples) last."""
     from threadpoolctl import threadpool_limits
 
     from cvslam_cli.estimation import stage
@@ -214,6 +216,8 @@ def ekf_on_simulation(
     inputs, truth = stage.build_inputs(cfg, fs, logs)
     if initial_error_seed is not None:
         inputs = from_prior(inputs, initial_error_seed)
+    if edit_inputs is not None:
+        inputs = edit_inputs(inputs)
     with threadpool_limits(limits=1, user_api="blas"):
         res = Slam(inputs, stage.settings_for(cfg.fuse, "ekf", inputs)).run()
     return res, truth["uav1"]

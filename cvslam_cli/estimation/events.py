@@ -11,7 +11,10 @@ consistent filter), its median over the vehicle's last `window` updates (robust 
 bad frame); above `nis_per_dof_max`, or any non-finite number in its state, the run stops and
 says when. The chi-square gate keeps gross innovations out of the NIS, so a frame where at
 least `MIN_VISIBLE_FOR_LOST` landmarks are predicted in view but none matches inside its
-window (the filter has lost its map) counts as infinite NIS.
+window (the filter has lost its map) counts as infinite NIS. A vehicle whose median is
+infinite has lost the map rather than diverged: it is relocalised (`relocalisation.py`),
+when that is on; a finite median above the limit (innovations too large while matching: a
+filter whose noise settings are wrong) stops the run.
 """
 
 from __future__ import annotations
@@ -90,6 +93,17 @@ class DivergenceMonitor:
     def __init__(self, vehicles: list[str], window: int, nis_per_dof_max: float) -> None:
         self.nis_per_dof_max = nis_per_dof_max
         self.recent: dict[str, deque[float]] = {v: deque(maxlen=window) for v in vehicles}
+
+    def lost_map(self, vehicle: str) -> bool:
+        """Whether `vehicle`'s median NIS is infinite: most of its recent frames matched
+        nothing in view (it lost the map), rather than matched with innovations too large
+        (a filter whose noise settings are wrong)."""
+        recent = self.recent[vehicle]
+        return bool(recent) and bool(np.isinf(np.median(recent)))
+
+    def reset(self, vehicle: str) -> None:
+        """Forget `vehicle`'s updates (it was lost and starts anew: `relocalisation.py`)."""
+        self.recent[vehicle].clear()
 
     def check(
         self, vehicle: str, nis: float, dof: int, n_visible: int, n_matches: int

@@ -95,5 +95,6 @@ class FrameOutcome:
     gamma: float = float("nan")
     gamma_raised: bool = False
     linearisations: int = 0
+    lost: bool = False  # the vehicle was lost at this frame (relocalisation.py)
     new_rows: I64 = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     window: WindowOutcome = field(default_factory=WindowOutcome)

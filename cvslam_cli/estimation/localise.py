@@ -33,6 +33,12 @@ from cvslam_cli.records.arrays import F64, I64
 
 RANSAC_ITERATIONS = 300
 RANSAC_CONFIDENCE = 0.999
+CONFIRM_RANGE_FRACTION = 0.05
+"""Two localisations of consecutive frames agree when the offsets of their poses from the
+filter's differ by less than this fraction of the median range from the camera to the
+inlier landmarks (m / m) ..."""
+CONFIRM_YAW_RAD = float(np.radians(3.0))
+"""... and their heading offsets by less than this (rad)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,24 +55,91 @@ class Localisation:
     candidates: int
 
 
+@dataclass(frozen=True)
+class _Pending:
+    """A localisation waiting for confirmation: the offset of the pose found from the
+    filter's (position (3,), heading) and in how many consecutive frames it held."""
+
+    dp_m: F64
+    dyaw_rad: float
+    frames: int
+
+
+class PoseConfirmation:
+    """Against a chance fit to look-alikes: a pose found by PnP counts once the same pose is
+    found in `frames` consecutive frames of the vehicle. The same pose: the offset from the
+    filter's pose repeats (the filter's dead reckoning moves by centimetres between frames,
+    a PnP pose on a map known to metres scatters by a few per cent of the range; a chance
+    fit does not land on the same offset twice)."""
+
+    def __init__(self, frames: int) -> None:
+        self.frames = frames
+        self._pending: dict[str, _Pending] = {}
+
+    @staticmethod
+    def tolerance_m(ranges_m: F64) -> float:
+        """The position tolerance of a localisation whose inliers lie at `ranges_m` (k,)."""
+        return CONFIRM_RANGE_FRACTION * float(np.median(ranges_m))
+
+    def confirmed(self, name: str, dp_m: F64, dyaw_rad: float, tol_m: float) -> bool:
+        """Whether vehicle `name`'s offset in this frame, with those of the frames before,
+        makes `frames` consecutive agreeing frames."""
+        last = self._pending.get(name)
+        agrees = (
+            last is not None
+            and float(np.linalg.norm(dp_m - last.dp_m)) < tol_m
+            and abs(dyaw_rad - last.dyaw_rad) < CONFIRM_YAW_RAD
+        )
+        frames = last.frames + 1 if agrees and last is not None else 1
+        self._pending[name] = _Pending(dp_m, dyaw_rad, frames)
+        return frames >= self.frames
+
+    def waiting(self, name: str) -> bool:
+        """Whether a pose of vehicle `name` waits for more frames."""
+        return name in self._pending
+
+    def drop(self, name: str) -> None:
+        """Forget vehicle `name`'s pending pose (a frame found none, or it was accepted)."""
+        self._pending.pop(name, None)
+
+
 def descriptor_pairs(
     desc_obs: NDArray[np.uint8],
     desc_map: NDArray[np.uint8],
     ratio: float,
     max_distance: float,
+    age: I64 | None = None,
 ) -> tuple[I64, I64]:
     """Putative pairs (match rows, map rows): each match's nearest map descriptor if it passes
     the ratio test against the second nearest and `max_distance`; a map row claimed by several
-    matches keeps the closest."""
+    matches keeps the closest.
+
+    With `age` (N,) (the order the map rows were mapped in, e.g. book ids): a point mapped
+    twice -- evicted and mapped again, or mapped anew from a pose gone wrong (a lost
+    vehicle's) -- has two map rows whose descriptors are as close to each other as to the
+    match. The ratio test of the two would reject both; instead, when the two nearest are
+    such duplicates (both, and their distance to each other, pass the ratio test against
+    the third nearest), the match is tested against the third and paired with the older."""
     if len(desc_obs) == 0 or len(desc_map) < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     D = descriptor_distances(desc_obs, desc_map)  # (M, N)
-    two = np.argpartition(D, 1, axis=1)[:, :2]
-    d2 = np.take_along_axis(D, two, axis=1)
-    first = np.argmin(d2, axis=1)
-    best = two[np.arange(len(D)), first]
-    d1 = d2[np.arange(len(D)), first]
-    second = d2[np.arange(len(D)), 1 - first]
+    k = 3 if age is not None and D.shape[1] >= 3 else 2
+    near = np.argpartition(D, k - 1, axis=1)[:, :k]
+    dk = np.take_along_axis(D, near, axis=1)
+    order = np.argsort(dk, axis=1, kind="stable")
+    near = np.take_along_axis(near, order, axis=1)
+    dk = np.take_along_axis(dk, order, axis=1)
+    best, d1, second = near[:, 0], dk[:, 0], dk[:, 1]
+    if k == 3:
+        assert age is not None
+        mutual = np.linalg.norm(
+            desc_map[near[:, 0]].astype(np.float32) - desc_map[near[:, 1]], axis=1
+        )
+        dup = (dk[:, 1] < ratio * dk[:, 2]) & (mutual < ratio * dk[:, 2])
+        older = dup & (age[near[:, 1]] < age[near[:, 0]])
+        best = np.where(older, near[:, 1], best)
+        d1 = np.where(older, dk[:, 1], d1)
+        second = np.where(dup, dk[:, 2], second)
     ok = np.flatnonzero((d1 < ratio * second) & (d1 < max_distance))
     # one match per map row: the smallest distance wins
     order = ok[np.lexsort((d1[ok], best[ok]))]
@@ -98,11 +171,14 @@ def localise(
     reprojection_px: float,
     min_inliers: int,
     seed: int = 0,
+    age: I64 | None = None,
 ) -> Localisation | None:
     """The body pose from a frame's stereo matches z_obs (M, 4) (u_l, v_l, u_r, v_r ideal
     pixels) with descriptors (M, 128) against map landmarks m_nav_m (N, 3) with descriptors
-    (N, 128); None when fewer than `min_inliers` agree (module docstring)."""
-    rows, lm = descriptor_pairs(desc_obs, desc_map, ratio, max_descriptor_distance)
+    (N, 128); None when fewer than `min_inliers` agree (module docstring). `age` (N,): the
+    order the landmarks were mapped in, to pair a point mapped twice with its older
+    mapping (`descriptor_pairs`)."""
+    rows, lm = descriptor_pairs(desc_obs, desc_map, ratio, max_descriptor_distance, age)
     if len(rows) < max(min_inliers, 4):
         return None
     cv2.setRNGSeed(seed)

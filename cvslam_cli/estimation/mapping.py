@@ -62,6 +62,8 @@ class LandmarkBook:
         self.view_sum = np.zeros((capacity, 3))
         # gauge rows (nav frame) at eviction, when the state carries a gauge (gauge.py)
         self.gauge_nav = np.zeros((capacity, 3, 4))
+        # mapped by a vehicle whose pose had gone wrong: position unknown (relocalisation.py)
+        self.forgotten = np.zeros(capacity, dtype=bool)
         self.slot_ids = np.zeros(0, dtype=np.int64)
 
     def _grow(self, need: int) -> None:
@@ -82,6 +84,7 @@ class LandmarkBook:
             "reactivations",
             "view_sum",
             "gauge_nav",
+            "forgotten",
         ):
             old = getattr(self, name)
             never = name in ("last_seen_ns", "evicted_ns")
@@ -182,6 +185,19 @@ class LandmarkBook:
         self.evicted_ns[ids] = stamp_ns
         if gauge is not None:
             self.gauge_nav[ids, :, : gauge.shape[2]] = gauge
+
+    def known(self, ids: I64, max_std_m: float) -> NDArray[np.bool_]:
+        """(k,) whether each landmark of `ids` has a stored position known to `max_std_m`
+        (the trace of its covariance at most 3 max_std_m^2) and was not forgotten."""
+        with np.errstate(invalid="ignore"):
+            trace = np.trace(self.cov_nav_m2[ids], axis1=1, axis2=2)
+            return np.isfinite(trace) & (trace <= 3 * max_std_m**2) & ~self.forgotten[ids]
+
+    def forget(self, ids: I64, cov: F64) -> None:
+        """Landmarks `ids` (out of the state) were mapped from a pose gone wrong: their
+        stored estimate stays, with covariance `cov` (3, 3), and they are not used again."""
+        self.forgotten[ids] = True
+        self.cov_nav_m2[ids] = cov
 
     def in_state_mask(self) -> NDArray[np.bool_]:
         """(count,) whether each landmark is in the state now."""

@@ -177,9 +177,7 @@ class PriorLandmarks(Reactivation):
         n, book = self.prior.n, self.book
         out = ~book.in_state_mask()[:n]
         unseen = np.all(book.last_seen_ns[:n] == NEVER, axis=1)
-        with np.errstate(invalid="ignore"):
-            trace = np.trace(book.cov_nav_m2[:n], axis1=1, axis2=2)
-            known = np.isfinite(trace) & (trace <= 3 * MAX_REACTIVATION_STD_M**2)
+        known = book.known(np.arange(n), MAX_REACTIVATION_STD_M)
         return np.flatnonzero(out & unseen & known)
 
     def reinsert(self, run: VehicleRun, ids: I64) -> I64:

@@ -105,16 +105,17 @@ class Reactivation:
         lost correlation (module docstring)."""
         return self.settings.reactivation_inflation * self.book.cov_nav_m2[ids]
 
-    def archived(self, t_ns: int) -> I64:
-        """Ids of the landmarks out of the state nobody observed for the minimum absence."""
+    def archived(self, t_ns: int, min_absence_ns: int | None = None) -> I64:
+        """Ids of the landmarks out of the state nobody observed for `min_absence_ns`
+        (default: `reactivation_min_absence_ns`)."""
         book = self.book
         n = book.count
         out = ~book.in_state_mask()
         last = book.last_seen_ns[:n].max(axis=1)
-        old = (last != NEVER) & (t_ns - last >= self.settings.reactivation_min_absence_ns)
-        with np.errstate(invalid="ignore"):
-            trace = np.trace(book.cov_nav_m2[:n], axis1=1, axis2=2)
-            known = np.isfinite(trace) & (trace <= 3 * MAX_REACTIVATION_STD_M**2)
+        if min_absence_ns is None:
+            min_absence_ns = self.settings.reactivation_min_absence_ns
+        old = (last != NEVER) & (t_ns - last >= min_absence_ns)
+        known = book.known(np.arange(n), MAX_REACTIVATION_STD_M)
         return np.flatnonzero(out & old & known)
 
     def find(self, run: VehicleRun, frame: FrameMatches, free: NDArray[np.bool_]) -> Found:

@@ -29,6 +29,23 @@ class WindowSettings:
 
 
 @dataclass(frozen=True)
+class RelocalisationSettings:
+    """relocalisation.py: `enabled`; a vehicle's frame located in the map by appearance every
+    `interval_ns`; `gate_chi2` (6 dof) the disagreement with the filter's pose that counts;
+    a lost vehicle's forgotten position, velocity and attitude have standard deviations
+    `position_sigma_m`, `velocity_sigma_m_s`, `attitude_sigma_rad` (each axis);
+    `max_per_vehicle` losses before the next is a divergence."""
+
+    enabled: bool = True
+    interval_ns: int = 1_000_000_000
+    gate_chi2: float = 38.26  # chi2 with 6 dof at 1 - 1e-6
+    position_sigma_m: float = 20.0
+    velocity_sigma_m_s: float = 5.0
+    attitude_sigma_rad: float = 0.2
+    max_per_vehicle: int = 5
+
+
+@dataclass(frozen=True)
 class SlamSettings:
     filter: FilterSettings = field(default_factory=FilterSettings)
     pixel_sigma_px: float = 0.5
@@ -79,6 +96,7 @@ class SlamSettings:
     localise_prior_chi2: float = 16.27  # chi2 with 3 dof at 0.999
     localise_confirm_frames: int = 3  # in a prior map: frames that must agree (prior_map.py)
     window: WindowSettings = field(default_factory=WindowSettings)
+    relocalisation: RelocalisationSettings = field(default_factory=RelocalisationSettings)
 
     @property
     def other_vehicle_noise_ratio(self) -> float:

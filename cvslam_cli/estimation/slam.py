@@ -17,7 +17,9 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
    the accepted ones (at most `max_updates_per_frame`, `update_budget.py`, spread over the
    image, the longest-unseen first) are classified into the paper's types 1 and 2
    (`association.classify`). A vehicle whose pose is not known yet is localised in the
-   shared map instead (`cooperation.py`);
+   shared map instead (`unknown_pose.py`); before that, the frame may be located in the map
+   by appearance, and a vehicle whose pose that contradicts is lost and found again
+   (`relocalisation.py`);
 3. update: one stacked EKF or NH-infinity update with those observations (eq. 19,
    `update.py`, `filters.py`) and the window's pending rows (step 5 of the frame before),
    iterated when the vehicle is too uncertain for one linearisation (`linearisation.py`);
@@ -77,6 +79,12 @@ from cvslam_cli.estimation.octave_noise import OctaveBearingNoise, match_octaves
 from cvslam_cli.estimation.octave_noise import resolve as resolve_octaves
 from cvslam_cli.estimation.prior_map import OFFSET_BLOCK, PriorLandmarks, PriorMap
 from cvslam_cli.estimation.reactivation import Reactivation
+from cvslam_cli.estimation.relocalisation import (
+    Contradiction,
+    PlaceRecognition,
+    forget_mapped,
+    lost_variances,
+)
 from cvslam_cli.estimation.settings import SlamSettings, landmark_bound
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.unknown_pose import UnknownPoseLocaliser
@@ -194,7 +202,11 @@ class Slam:
         self.localiser = UnknownPoseLocaliser(
             self.state, self.book, self.runs, self.updater, self.events, settings,
             self.cooperation.bounded_vehicles, self.mapper, self.prior_landmarks,
+            self.reactivation,
         )  # fmt: skip
+        self.recognition = PlaceRecognition(
+            self.state, self.book, settings, self.updater.R_pixel_hat
+        )
         self.monitor = DivergenceMonitor(self.names, settings.nis_window, settings.nis_per_dof_max)
         self.timeline: list[dict[str, Any]] = []
         self.divergence: Divergence | None = None
@@ -228,10 +240,14 @@ class Slam:
         t_start = time.perf_counter()
         self._predict(run, t_ns)
         frame = FrameMatches.of(run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio)
+        # the map by appearance against the filter's pose: a vehicle it contradicts is lost
+        contradiction = self.recognition.check(run, frame) if run.localised else None
+        if contradiction is not None and not self._lose(run, t_ns, contradiction.why):
+            contradiction = None  # diverged instead
         localising = not run.localised
         found = None
         if localising:  # pose unknown: localise in the map (an update of its own)
-            out = self.localiser.localise_vehicle(run, frame)
+            out = self._localise(run, frame, contradiction)
         else:
             found, out = self._associate(run, frame)
             reactivated = self._reactivate(run, frame, out)
@@ -240,16 +256,32 @@ class Slam:
                 out.reactivated = reactivated
             if found is not None:
                 self._update(run, frame, found, out)
+        out.lost = contradiction is not None
         if found is None or localising:  # the window's pending rows, alone
             self._flush_window()
         # landmark uncertainty of this frame's updated landmarks (before any eviction)
         lm_std = self._landmark_sigma(out.updated_slots)
         prior_used = self.prior.count(self.book, out.updated_slots) if self.prior else 0
         if not localising:
+            self.recognition.tracked(
+                run, t_ns, out.visible, len(out.updated_slots), self.budget.max_updates
+            )
             self._map(run, frame, out)
             self._window(run, frame, out)
         self._next_candidates(run, frame, out)
         self._record(run, frame, out, lm_std, t_start, prior_used)
+
+    def _localise(
+        self, run: VehicleRun, frame: FrameMatches, contradiction: Contradiction | None
+    ) -> FrameOutcome:
+        """Step 2 for a vehicle whose pose is unknown: localised at once where the map by
+        appearance put it when that is what just lost it (the check's inliers still in the
+        map, if enough), else by searching the map (`unknown_pose.py`)."""
+        if contradiction is not None:
+            c = contradiction.without_forgotten(self.book)
+            if len(c.ids) >= self.settings.localise_min_inliers:
+                return self.localiser.relocalise(run, frame, c.found, c.ids)
+        return self.localiser.localise_vehicle(run, frame)
 
     def _predict(self, run: VehicleRun, t_ns: int) -> None:
         """Step 1 (eq. 1-2, 13)."""
@@ -458,7 +490,9 @@ class Slam:
         run.x.append(pose.x)  # a copy of the state's block
         run.pose_cov.append(pose_cov)
         reason = self.monitor.check(vin.name, out.nis, out.dof, out.visible, len(frame))
-        if reason is not None:
+        if reason is not None and self.monitor.lost_map(vin.name):
+            out.lost = self._lose(run, t_ns, reason)
+        elif reason is not None:  # inconsistent, not lost: wrong settings, not bad luck
             self._diverge(vin.name, t_ns, reason)
         self.timeline.append(
             {
@@ -478,6 +512,7 @@ class Slam:
                 "reactivated": out.reactivated,
                 "prior": prior_used,
                 "localised": run.localised,
+                "lost": out.lost,
                 "sigma_pos_m": float(np.sqrt(np.trace(pose_cov[:3, :3]))),
                 "sigma_att_rad": float(np.sqrt(np.trace(pose_cov[3:, 3:]))),
                 "sigma_landmark_m": lm_std,
@@ -496,6 +531,32 @@ class Slam:
                 "ms": 1e3 * (time.perf_counter() - t_start),
             }
         )
+
+    def _lose(self, run: VehicleRun, t_ns: int, why: str) -> bool:
+        """Run's vehicle is lost (`relocalisation.py`: the map contradicted it, or it lost the
+        map): it forgets its pose and is localised in the map again; a divergence instead
+        (returns False) when relocalisation is off or the vehicle was lost `max_per_vehicle`
+        times already."""
+        s = self.settings.relocalisation
+        name = run.vin.name
+        if not s.enabled or run.losses >= s.max_per_vehicle:
+            again = (
+                f" (lost {run.losses} times before: fuse.relocalisation.max_per_vehicle)"
+                if s.enabled
+                else ""
+            )
+            self._diverge(name, t_ns, why + again)
+            return False
+        self._flush_window()
+        rows, variances = lost_variances(run.vin.model, s)
+        self.state.forget(name, rows, variances)
+        forgotten = forget_mapped(
+            self.state, self.book, run, t_ns, s.position_sigma_m**2, s.interval_ns
+        )
+        run.lose(t_ns)
+        self.monitor.reset(name)
+        self.events.add(t_ns, "lost", name, "", forgotten, None, why)
+        return True
 
     def _diverge(self, vehicle: str, t_ns: int, reason: str) -> None:
         if self.divergence is None:

@@ -49,7 +49,12 @@ from cvslam_cli.estimation.motion.models import (
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.octave_noise import OctaveBearingNoise, match_octaves
 from cvslam_cli.estimation.octave_noise import resolve as resolve_octaves
-from cvslam_cli.estimation.settings import SlamSettings, WindowSettings, landmark_bound
+from cvslam_cli.estimation.settings import (
+    RelocalisationSettings,
+    SlamSettings,
+    WindowSettings,
+    landmark_bound,
+)
 from cvslam_cli.estimation.slam import (
     Slam,
     SlamResult,
@@ -117,6 +122,10 @@ class VehicleFuse:
     # localisation and later), and seconds from its start to the first of them (None: none)
     prior_landmarks: int = 0
     first_prior_s: float | None = None
+    # times the map contradicted its pose and it was lost, and found again, in this run
+    # (estimation/relocalisation.py; events.csv's lost and relocalisation events)
+    lost: int = 0
+    relocalised: int = 0
 
 
 @dataclass(frozen=True)
@@ -560,6 +569,15 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         localise_reprojection_px=cfg.initial.localise_reprojection_px,
         localise_prior_chi2=float(chi2.ppf(cfg.initial.localise_prior_probability, 3)),
         localise_confirm_frames=cfg.initial.localise_confirm_frames,
+        relocalisation=RelocalisationSettings(
+            enabled=cfg.relocalisation.enabled,
+            interval_ns=int(cfg.relocalisation.check_interval_s * 1e9),
+            gate_chi2=float(chi2.ppf(cfg.relocalisation.gate_probability, 6)),
+            position_sigma_m=cfg.relocalisation.position_sigma_m,
+            velocity_sigma_m_s=cfg.relocalisation.velocity_sigma_m_s,
+            attitude_sigma_rad=cfg.relocalisation.attitude_sigma_rad,
+            max_per_vehicle=cfg.relocalisation.max_per_vehicle,
+        ),
         window=WindowSettings(
             window=cfg.window.clones,
             max_tracks=cfg.window.max_tracks,
@@ -746,6 +764,12 @@ def _vehicle_fuse(
         localised_after_s = (found[0]["stamp_ns"] - v.start_ns) * 1e-9 if found else None
         inliers = int(found[0]["landmarks"]) if found else 0
     prior = [e for e in res.events if e["event"] == "prior_map" and e["vehicle"] == v.name]
+
+    def frames(kind: str) -> int:  # events merge frames close in time: count the frames
+        return sum(
+            int(e["frames"]) for e in res.events if e["event"] == kind and e["vehicle"] == v.name
+        )
+
     return VehicleFuse(
         frames=len(tr.stamps_ns),
         model=v.model.kind,
@@ -762,6 +786,8 @@ def _vehicle_fuse(
         localised_inliers=inliers,
         prior_landmarks=sum(int(e["landmarks"]) for e in prior),
         first_prior_s=(prior[0]["stamp_ns"] - v.start_ns) * 1e-9 if prior else None,
+        lost=frames("lost"),
+        relocalised=frames("relocalisation"),
     )
 
 

@@ -154,6 +154,23 @@ class JointState:
             down = self._N.shape[1] == 4
             self._N[vb.index] = vehicle_basis(vb.model, self.x[vb.index], down)
 
+    def forget(self, name: str, rows: I64, variances: F64) -> None:
+        """Vehicle `name`'s block made independent of the rest of the state, and its states
+        `rows` (indices into the block) independent of its others with `variances` (k,):
+        what is left when the vehicle's estimate of those states is known to be wrong
+        (`relocalisation.py`). Its gauge rows are set anew from its state (`reset_gauge`)."""
+        vb = self.vehicles[name]
+        s = slice(vb.start, vb.start + vb.model.n)
+        P_vv = self.P[s, s].copy()
+        self.P[s, :] = 0.0
+        self.P[:, s] = 0.0
+        rows = np.asarray(rows, dtype=np.int64)
+        P_vv[rows, :] = 0.0
+        P_vv[:, rows] = 0.0
+        P_vv[rows, rows] = variances
+        self.P[s, s] = P_vv
+        self.reset_gauge(name)
+
     def _reserve(self, n: int) -> None:
         cap = len(self._x)
         if n <= cap:

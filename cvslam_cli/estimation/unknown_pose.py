@@ -29,46 +29,30 @@ The localisation (and the prior landmarks brought in) are logged as events.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
 from cvslam_cli.estimation.association import TYPE_2, classify, record_observations, unassociated
 from cvslam_cli.estimation.events import EventLog
 from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
-from cvslam_cli.estimation.localise import Localisation, localise
-from cvslam_cli.estimation.mapping import LandmarkBook
+from cvslam_cli.estimation.localise import Localisation, PoseConfirmation, localise
+from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
 from cvslam_cli.estimation.prior_map import PriorLandmarks
+from cvslam_cli.estimation.reactivation import Reactivation
 from cvslam_cli.estimation.settings import SlamSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.vehicle import VehiclePose, VehicleRun
 from cvslam_cli.records.arrays import F64, I64
 
-CONFIRM_RANGE_FRACTION = 0.05
-"""Two localisations of consecutive frames agree when the offsets of their poses from the
-vehicle's dead-reckoned prior differ by less than this fraction of the median range from
-the camera to the inlier landmarks (m / m) ..."""
-CONFIRM_YAW_RAD = float(np.radians(3.0))
-"""... and their heading offsets by less than this (rad)."""
-
-
-@dataclass(frozen=True)
-class _Pending:
-    """A localisation waiting for confirmation: the offset of the pose found from the
-    vehicle's prior (position (3,), heading) and in how many consecutive frames it held."""
-
-    dp_m: F64
-    dyaw_rad: float
-    frames: int
-
 
 class UnknownPoseLocaliser:
     """Localising the vehicles of `runs` whose pose is unknown (module docstring) in the
-    landmarks of `state` and, when `prior` is given, the prior map's; `bounded` gives the
-    vehicles NH-infinity's bound is on (`Cooperation.bounded_vehicles`), `mapper` makes room
-    for prior landmarks."""
+    landmarks of `state` and, when `prior` is given, the prior map's; a lost vehicle
+    (`relocalisation.py`) among the evicted landmarks too, brought back by `reactivation`;
+    `bounded` gives the vehicles NH-infinity's bound is on
+    (`Cooperation.bounded_vehicles`), `mapper` makes room for landmarks brought in."""
 
     def __init__(
         self,
@@ -81,6 +65,7 @@ class UnknownPoseLocaliser:
         bounded: Callable[[], list[str]],
         mapper: NewLandmarks,
         prior: PriorLandmarks | None,
+        reactivation: Reactivation,
     ) -> None:
         self.state = state
         self.book = book
@@ -91,9 +76,12 @@ class UnknownPoseLocaliser:
         self.bounded = bounded
         self.mapper = mapper
         self.prior = prior
-        self.confirm_frames = settings.localise_confirm_frames if prior is not None else 1
+        self.reactivation = reactivation
+        # in the shared map one frame is enough; in a prior map, or the whole map of a lost
+        # vehicle, the same pose in several (module docstring, step 3)
+        self._first = PoseConfirmation(settings.localise_confirm_frames if prior else 1)
+        self._again = PoseConfirmation(settings.localise_confirm_frames)
         self.names = [r.vin.name for r in runs]
-        self._pending: dict[str, _Pending] = {}
 
     def localise_vehicle(self, run: VehicleRun, frame: FrameMatches) -> FrameOutcome:
         """Try to localise run's vehicle from this frame; on the confirming frame, move it
@@ -101,52 +89,62 @@ class UnknownPoseLocaliser:
         s, st, book, vin = self.settings, self.state, self.book, run.vin
         n = len(frame)
         out = FrameOutcome(unassociated(n).type)
+        confirmation = self._again if run.lost_ns is not None else self._first
+        none = np.zeros(0, dtype=np.int64)
         state_ids = book.slot_ids.copy()
-        prior_ids = (
-            self.prior.archived(frame.stamp_ns)
-            if self.prior is not None
-            else np.zeros(0, dtype=np.int64)
-        )
-        ids = np.concatenate([state_ids, prior_ids])
+        prior_ids = self.prior.archived(frame.stamp_ns) if self.prior is not None else none
+        own_ids = self.reactivation.archived(frame.stamp_ns, 0) if run.lost_ns is not None else none
+        ids = np.concatenate([state_ids, prior_ids, own_ids])
         if len(ids) < s.localise_min_inliers or n < s.localise_min_inliers:
             return out
-        m = np.concatenate([st.landmarks().reshape(-1, 3), book.p_nav_m[prior_ids]])
+        m = np.concatenate([st.landmarks().reshape(-1, 3), book.p_nav_m[ids[len(state_ids) :]]])
         found = localise(
             vin.obs, frame.z, frame.desc, m, book.desc[ids], ratio=s.descriptor_ratio,
             max_descriptor_distance=s.max_descriptor_distance,
             reprojection_px=s.localise_reprojection_px, min_inliers=s.localise_min_inliers,
-            seed=len(run.stamps_ns),
+            seed=len(run.stamps_ns), age=ids,
         )  # fmt: skip
         prior = VehiclePose.of(st, vin)
         if found is None:
-            self._pending.pop(vin.name, None)
+            confirmation.drop(vin.name)
             return out
         d = found.p_nav_m - prior.p_nav_m
         if float(d @ np.linalg.solve(prior.cov[:3, :3], d)) > s.localise_prior_chi2:
-            self._pending.pop(vin.name, None)
+            confirmation.drop(vin.name)
             out.rejected = len(found.match_rows)
             return out
         # angles continuous with the state's (which are not wrapped)
         e0 = prior.euler_rad
         euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
         ranges = np.linalg.norm(m[found.landmark_rows] - found.p_nav_m, axis=1)
-        tol_m = CONFIRM_RANGE_FRACTION * float(np.median(ranges))
-        if not self._confirmed(vin.name, d, float(euler[2] - e0[2]), tol_m):
+        tol_m = confirmation.tolerance_m(ranges)
+        if not confirmation.confirmed(vin.name, d, float(euler[2] - e0[2]), tol_m):
             return out
-        return self._accept(run, frame, found, ids[found.landmark_rows], euler, d, len(state_ids))
+        confirmation.drop(vin.name)
+        return self._accept(run, frame, found, ids[found.landmark_rows], euler, d)
 
-    def _confirmed(self, name: str, dp_m: F64, dyaw_rad: float, tol_m: float) -> bool:
-        """Whether this frame's offset confirms the previous frames' to `tol_m` (module
-        docstring, step 3)."""
-        last = self._pending.get(name)
-        agrees = (
-            last is not None
-            and float(np.linalg.norm(dp_m - last.dp_m)) < tol_m
-            and abs(dyaw_rad - last.dyaw_rad) < CONFIRM_YAW_RAD
-        )
-        frames = last.frames + 1 if agrees and last is not None else 1
-        self._pending[name] = _Pending(dp_m, dyaw_rad, frames)
-        return frames >= self.confirm_frames
+    def relocalise(
+        self, run: VehicleRun, frame: FrameMatches, found: Localisation, ids: I64
+    ) -> FrameOutcome:
+        """Run's vehicle, just lost because the map by appearance contradicted its pose
+        (`relocalisation.PlaceRecognition`), moved at once to the pose that map gave
+        (`found`, confirmed over frames already; its inliers' book ids `ids`), as a
+        confirmed localisation is (module docstring, step 4)."""
+        pose = VehiclePose.of(self.state, run.vin)
+        e0 = pose.euler_rad
+        euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
+        return self._accept(run, frame, found, ids, euler, found.p_nav_m - pose.p_nav_m)
+
+    def _sources(self, ids: I64) -> I64:
+        """(k,) where each landmark of `ids` is: 0 in the state, 1 a prior-map landmark not
+        observed in this run, 2 evicted."""
+        book = self.book
+        source = np.full(len(ids), 2, dtype=np.int64)
+        if self.prior is not None:
+            unseen = np.all(book.last_seen_ns[ids] == NEVER, axis=1)
+            source[(ids < self.prior.prior.n) & unseen] = 1
+        source[book.in_state_mask()[ids]] = 0
+        return source
 
     def _accept(
         self,
@@ -156,26 +154,38 @@ class UnknownPoseLocaliser:
         ids: I64,
         euler: F64,
         d: F64,
-        n_state: int,
     ) -> FrameOutcome:
-        """The vehicle moved to the pose found, the inlier prior landmarks (ids at or past
-        `n_state` of the candidates) inserted as many as fit, and one update with every
-        inlier in the state (module docstring, step 4)."""
+        """The vehicle moved to the pose found, the inliers (book ids `ids`) out of the
+        state (the prior map's, or evicted) brought in as many as fit, and one update with
+        every inlier in the state (module docstring, step 4)."""
         s, st, book, vin = self.settings, self.state, self.book, run.vin
-        self._pending.pop(vin.name, None)
+        source = self._sources(ids)
         prior = VehiclePose.of(st, vin)
-        # what the prior does not know (position, heading) from the pose found; roll and
-        # pitch stay the state's (module docstring, step 4)
-        euler = np.array([prior.euler_rad[0], prior.euler_rad[1], euler[2]])
+        # what the prior does not know from the pose found: position and heading; roll and
+        # pitch stay the state's (module docstring, step 4), except for a lost vehicle,
+        # which forgot them too (relocalisation.lost_variances)
+        if run.lost_ns is None:
+            euler = np.array([prior.euler_rad[0], prior.euler_rad[1], euler[2]])
         st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
         st.reset_gauge(vin.name)
-        from_prior = found.landmark_rows >= n_state
-        if self.prior is not None:
-            protected = np.flatnonzero(np.isin(book.slot_ids, ids[~from_prior]))
-            room = self.mapper.make_room(run, self.runs, protected, np.flatnonzero(from_prior))
-            if len(room):
-                self.prior.reinsert(run, ids[room])
-                self.events.add(frame.stamp_ns, "prior_map", vin.name, "", len(room))
+        outside = np.flatnonzero(source > 0)
+        if len(outside):
+            protected = np.flatnonzero(np.isin(book.slot_ids, ids[source == 0]))
+            room = self.mapper.make_room(run, self.runs, protected, outside)
+            for kind, k in (("prior_map", 1), ("reactivation", 2)):
+                these = ids[room[source[room] == k]]
+                if not len(these):
+                    continue
+                if k == 1:
+                    assert self.prior is not None
+                    self.prior.reinsert(run, these)
+                else:
+                    absent = frame.stamp_ns - book.last_seen_ns[these].max(axis=1)
+                    self.reactivation.reinsert(run, these)
+                others = book.other_observers(these, run.index, self.names) if k == 2 else ""
+                self.events.add(
+                    frame.stamp_ns, kind, vin.name, others, len(these), absent if k == 2 else None
+                )
         # the inliers in the state now (an inlier that did not fit is left out)
         slot_of = {int(i): k for k, i in enumerate(book.slot_ids)}
         keep = np.array([int(i) in slot_of for i in ids], dtype=bool)
@@ -198,28 +208,31 @@ class UnknownPoseLocaliser:
         )  # fmt: skip
         others = book.other_observers(ids_used, run.index, self.names)
         record_observations(st, book, run, slots, frame.stamp_ns, frame.z[match_rows])
-        run.localised_ns = frame.stamp_ns
-        self.events.add(
-            frame.stamp_ns, "localisation", vin.name, others, k, None,
-            self._message(frame, found, run, ids_used, d),
-        )  # fmt: skip
+        kind = "localisation" if run.lost_ns is None else "relocalisation"
+        message = self._message(frame, found, run, ids_used, d)
+        run.localise(frame.stamp_ns)
+        self.events.add(frame.stamp_ns, kind, vin.name, others, k, None, message)
         return out
 
     def _message(
         self, frame: FrameMatches, found: Localisation, run: VehicleRun, ids_used: I64, d: F64
     ) -> str:
         """The localisation event's text: when, on what, and how far the vehicle moved."""
-        after_s = (frame.stamp_ns - run.vin.start_ns) * 1e-9
+        if run.lost_ns is None:
+            when = f"{(frame.stamp_ns - run.vin.start_ns) * 1e-9:.2f} s after its start"
+        else:
+            when = f"{(frame.stamp_ns - run.lost_ns) * 1e-9:.2f} s after it was lost"
         where, pairs = "", "descriptor pairs"
+        confirm = self._again.frames if run.lost_ns is not None else self._first.frames
         if self.prior is not None:
             n_prior = int(np.sum(ids_used < self.prior.prior.n))
             where = " in the prior map"
-            pairs += (
-                f" ({n_prior} prior-map landmarks), the same pose in {self.confirm_frames} "
-                "consecutive frames"
-            )
+            pairs += f" ({n_prior} prior-map landmarks)"
+        if confirm > 1:
+            pairs += f", the same pose in {confirm} consecutive frames"
+        verb = "localised" if run.lost_ns is None else "relocalised"
         return (
-            f"localised{where} {after_s:.2f} s after its start: PnP on {len(found.match_rows)} "
-            f"of {found.candidates} {pairs}, reprojection RMS {found.rms_px:.2f} px, moved "
+            f"{verb}{where} {when}: PnP on {len(found.match_rows)} of {found.candidates} "
+            f"{pairs}, reprojection RMS {found.rms_px:.2f} px, moved "
             f"{np.linalg.norm(d):.1f} m from its prior"
         )

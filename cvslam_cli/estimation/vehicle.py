@@ -65,8 +65,11 @@ class VehicleRun:
     """Per-vehicle bookkeeping during a run: `index` (its bit in the landmark book), the time
     its state was predicted to (`t_ns`), the estimates recorded at its frames (`stamps_ns`, vehicle
     states x (n,), pose covariances (6, 6)), when its pose became known (its start, or when
-    it was localised; None while unknown), its last frame's candidates and the observations
-    it made (`observation_log.py`)."""
+    it was localised; None while unknown), when the map by appearance last confirmed it
+    (`verified_ns`: its start or localisation, or a check that agreed) and when it last
+    tracked the map (`tracked_ns`), when it was last lost and how often
+    (`relocalisation.py`), its last frame's candidates and the observations it made
+    (`observation_log.py`)."""
 
     vin: VehicleInput
     index: int
@@ -77,14 +80,30 @@ class VehicleRun:
     pose_cov: list[F64] = field(default_factory=list)
     candidates: Candidates | None = None
     observations: ObservationLog = field(default_factory=ObservationLog)  # for refine
+    verified_ns: int | None = None
+    tracked_ns: int | None = None
+    lost_ns: int | None = None
+    losses: int = 0
 
     @staticmethod
     def start(vin: VehicleInput, index: int) -> VehicleRun:
-        return VehicleRun(vin, index, vin.start_ns, vin.start_ns if vin.pose_known else None)
+        known = vin.start_ns if vin.pose_known else None
+        return VehicleRun(vin, index, vin.start_ns, known, verified_ns=known, tracked_ns=known)
 
     @property
     def localised(self) -> bool:
         return self.localised_ns is not None
+
+    def localise(self, t_ns: int) -> None:
+        """Its pose is known from t_ns (found in the map)."""
+        self.localised_ns = t_ns
+        self.verified_ns = self.tracked_ns = t_ns
+
+    def lose(self, t_ns: int) -> None:
+        """Its pose is unknown from t_ns (the map contradicts it: `relocalisation.py`)."""
+        self.localised_ns = None
+        self.lost_ns = t_ns
+        self.losses += 1
 
 
 @dataclass(frozen=True, eq=False)

@@ -39,6 +39,17 @@ def paper_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run
 
 
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The first 25 s of the same mission (not fused): for the tests that fuse it again with
+    another setting, each about a third of the full mission's time. UAV2 meets UAV1's
+    map in its first seconds, which is what they look at."""
+    run = tmp_path_factory.mktemp("short") / "uav2"
+    _main("-q", "simulate", "uav2_paper", "-o", run, "--set", "mode=landmarks",
+          "--set", "duration_s=25")  # fmt: skip
+    return run
+
+
 def _summary(run: Path, stage: str) -> dict:
     return yaml.safe_load((run / "run.yaml").read_text())["stages"][stage]["summary"]
 
@@ -88,6 +99,9 @@ def test_cooperation_lowers_uav2_error_and_does_not_hurt_uav1(paper_run):
               f"{c['final_error_m']:.2f} vs {s['final_error_m']:.2f} m")  # fmt: skip
     assert coop["vehicles"]["uav2"]["rmse_m"] < 0.8 * single["vehicles"]["uav2"]["rmse_m"]
     assert coop["vehicles"]["uav1"]["rmse_m"] <= 1.05 * single["vehicles"]["uav1"]["rmse_m"]
+    # no fault: the place-recognition checks never find the map contradicting a vehicle
+    for s in (coop, single):
+        assert all(v["lost"] == 0 for v in s["vehicles"].values())
 
     tl = pd.read_csv(paper_run / "fuse" / "timeline.csv")
     u2 = tl[tl.vehicle == "uav2"].reset_index(drop=True)
@@ -137,13 +151,13 @@ def test_cooperation_lowers_uav2_error_and_does_not_hurt_uav1(paper_run):
 
 
 def test_a_vehicle_with_unknown_initial_pose_is_localised_in_the_shared_map(
-    paper_run, tmp_path, cvslam
+    short_run, tmp_path, cvslam
 ):
     """UAV2 starts from a prior 18 m and 17 degrees off: it is localised in UAV1's map within
     seconds, and then tracked about as well as with a known initial pose."""
     run = tmp_path / "run"
-    shutil.copytree(paper_run, run, ignore=shutil.ignore_patterns("fuse*"))
-    r = cvslam("fuse", run, "--force", "--set", UNKNOWN_UAV2)
+    shutil.copytree(short_run, run)
+    r = cvslam("fuse", run, "--set", UNKNOWN_UAV2)
     assert r.code == 0, r.err
     assert "uav2: localised in the map" in r.err
     s = _summary(run, "fuse")["vehicles"]
@@ -163,9 +177,8 @@ def test_a_vehicle_with_unknown_initial_pose_is_localised_in_the_shared_map(
     print(
         f"\nuav2 localised {after_s:.2f} s after its start ({loc.detail.iloc[0]}); error "
           f"{err[0]:.1f} m at the start, RMSE {np.sqrt(np.mean(err[t_s > after_s] ** 2)):.2f} m "
-          f"after, final {err[-1]:.2f} m (known initial pose: "
-          f"{_summary(paper_run, 'fuse')['vehicles']['uav2']['final_error_m']:.2f} m; dead "
-          f"reckoning from the prior {s['uav2']['final_error_deadreckoning_m']:.1f} m)"
+          f"after, final {err[-1]:.2f} m (dead reckoning from the prior "
+          f"{s['uav2']['final_error_deadreckoning_m']:.1f} m)"
     )  # fmt: skip
     assert 0 < after_s < 15
     assert not u2.localised.iloc[0] and u2.localised.iloc[-1]
@@ -173,7 +186,8 @@ def test_a_vehicle_with_unknown_initial_pose_is_localised_in_the_shared_map(
     before = u2[~u2.localised]
     assert (before[["type1", "type2", "type3"]].to_numpy() == 0).all()
     assert err[0] > 10
-    assert np.sqrt(np.mean(err[t_s > after_s + 1] ** 2)) < 5.0
+    # 0.34 m on this run, from a start 18 m off
+    assert np.sqrt(np.mean(err[t_s > after_s + 1] ** 2)) < 1.0
     assert err[-1] * 10 < s["uav2"]["final_error_deadreckoning_m"]
 
 
@@ -185,14 +199,14 @@ def test_unknown_pose_of_a_vehicle_not_in_the_run_is_an_error(paper_run, tmp_pat
     assert r.err.count("\n") == 1 and "fuse.initial.unknown" in r.err and "uav9" in r.err
 
 
-def test_joint_initialisation_can_be_turned_off(paper_run, tmp_path):
+def test_joint_initialisation_can_be_turned_off(paper_run, short_run, tmp_path):
     """The default run initialises landmarks jointly (UAV2 starts next to UAV1); with
     fuse.map.joint_initialisation false no landmark is, and the run says which it used."""
     events = pd.read_csv(paper_run / "fuse" / "events.csv")
     assert (events.event == "joint_initialisation").any()
     run = tmp_path / "uav2"
-    shutil.copytree(paper_run, run, ignore=shutil.ignore_patterns("fuse*", "eval*"))
-    _main("-q", "fuse", run, "--force", "--set", "fuse.map.joint_initialisation=false")
+    shutil.copytree(short_run, run)
+    _main("-q", "fuse", run, "--set", "fuse.map.joint_initialisation=false")
     events = pd.read_csv(run / "fuse" / "events.csv")
     assert not (events.event == "joint_initialisation").any()
     assert (events.event == "cross_vehicle").any()  # still one cooperative filter

@@ -182,6 +182,8 @@ def _loop_runs(sims: list[Path], *overrides: str) -> tuple[np.ndarray, float, in
     for d in sims:
         res, gt = ekf_on_simulation(d, cfg)
         assert res.divergence is None
+        # no fault: the place-recognition checks never find the map contradicting the filter
+        assert not any(e["event"] == "lost" for e in res.events)
         tr = res.tracks["uav1"]
         p_t, _, _ = interpolate_poses(gt.stamps_ns, gt.p_nav_m, gt.q_nav_body_xyzw, tr.stamps_ns)
         e = tr.p_nav_m - p_t
