@@ -239,3 +239,22 @@ def blackout(fs: Any, start_s: float, end_s: float) -> Any:
         if f.name.startswith("match_") and f.name != "match_offsets"
     }
     return dataclasses.replace(fs, match_offsets=offsets, **matches)
+
+
+def accelerometer_glitch(
+    start_s: float, duration_s: float, m_s2: float
+) -> Callable[[list[Any]], list[Any]]:
+    """An `edit_inputs` for `ekf_on_simulation`: every vehicle's accelerometer `m_s2` off along
+    its body x from `start_s` to `start_s + duration_s` after its start (a bump, or an IMU
+    saturating), which the filter cannot know of."""
+
+    def edit(inputs: list[Any]) -> list[Any]:
+        out = []
+        for v in inputs:
+            t_s = (v.motion_stamps_ns - v.start_ns) * 1e-9
+            U = v.motion_inputs.copy()
+            U[(t_s >= start_s) & (t_s < start_s + duration_s), 0] += m_s2
+            out.append(dataclasses.replace(v, motion_inputs=U))
+        return out
+
+    return edit

@@ -5,7 +5,6 @@ and the whole, on the loop UAV with an accelerometer glitch."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -24,7 +23,12 @@ from cvslam_cli.estimation.relocalisation import forget_mapped, lost_variances
 from cvslam_cli.estimation.settings import RelocalisationSettings
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.geometry.rotations import interpolate_positions
-from tests.scenarios import MC_FILTER_OVERRIDES, ekf_on_simulation, simulate_loop_uav
+from tests.scenarios import (
+    MC_FILTER_OVERRIDES,
+    accelerometer_glitch,
+    ekf_on_simulation,
+    simulate_loop_uav,
+)
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -128,18 +132,6 @@ def loop_sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulate_loop_uav(tmp_path_factory.mktemp("loop"), 30.0, [1])[0]
 
 
-def _glitch(inputs: list[Any]) -> list[Any]:
-    """The accelerometer GLITCH_M_S2 off along the body's x for GLITCH_S from GLITCH_AT_S: a
-    bump, or an IMU saturating, that the filter cannot know of."""
-    out = []
-    for v in inputs:
-        t_s = (v.motion_stamps_ns - v.start_ns) * 1e-9
-        U = v.motion_inputs.copy()
-        U[(t_s >= GLITCH_AT_S) & (t_s < GLITCH_AT_S + GLITCH_S), 0] += GLITCH_M_S2
-        out.append(dataclasses.replace(v, motion_inputs=U))
-    return out
-
-
 def _errors(res: Any, truth: Any) -> tuple[np.ndarray, np.ndarray]:
     tr = res.tracks["uav1"]
     e = tr.p_nav_m - interpolate_positions(truth.stamps_ns, truth.p_nav_m, tr.stamps_ns)
@@ -153,7 +145,8 @@ def test_an_imu_glitch_is_caught_by_appearance_and_the_vehicle_found_again(loop_
     runs = {}
     for on in (False, True):
         cfg = load_config((), [*MC_FILTER_OVERRIDES, f"fuse.relocalisation.enabled={on}"])
-        res, truth = ekf_on_simulation(loop_sim, cfg, edit_inputs=_glitch)
+        glitch = accelerometer_glitch(GLITCH_AT_S, GLITCH_S, GLITCH_M_S2)
+        res, truth = ekf_on_simulation(loop_sim, cfg, edit_inputs=glitch)
         assert res.divergence is None
         runs[on] = (res, *_errors(res, truth))
     (off, _, err_off), (on, t_s, err_on) = runs[False], runs[True]
