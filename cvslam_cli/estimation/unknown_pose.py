@@ -24,6 +24,12 @@ Each frame of the vehicle, until it is localised:
    map (PnP's pitch 1-2 degrees off, its position metres off, on the prior-map test's
    scene; BENCHMARKS.md "Fuse: 60 landmarks a frame for a team with IMUs").
 The localisation (and the prior landmarks brought in) are logged as events.
+
+A vehicle lost during the run (`relocalisation.py`: the map by appearance contradicted its
+pose, or it lost the map) is localised again the same way, among the evicted landmarks too
+(brought back as re-activations), the same pose required in `localise_confirm_frames`
+frames, its roll and pitch taken from the pose found as well (it forgot them); or at once
+at the pose the check that lost it found (`relocalise`). Logged as `relocalisation`.
 """
 
 from __future__ import annotations
