@@ -33,6 +33,7 @@ def test_divergence_needs_a_full_window_of_large_nis():
         assert mon.check("a", nis=400.0, dof=4, n_visible=50, n_matches=80) is None  # not full yet
     reason = mon.check("a", nis=400.0, dof=4, n_visible=50, n_matches=80)
     assert reason is not None and "median NIS per measurement 100.0 over the last 4" in reason
+    assert not mon.lost_map("a")  # matching, with innovations too large: diverged
     # another vehicle's window is its own; a median below the limit is healthy
     for nis in (4.0, 400.0, 4.0, 8.0):
         assert mon.check("b", nis=nis, dof=4, n_visible=50, n_matches=80) is None
@@ -50,3 +51,6 @@ def test_a_frame_with_landmarks_in_view_and_no_match_counts_as_infinite_nis():
     assert mon.check("a", nis=np.nan, dof=0, n_visible=50, n_matches=80) is None
     reason = mon.check("a", nis=np.nan, dof=0, n_visible=50, n_matches=80)
     assert reason is not None and "count as infinite NIS" in reason
+    assert mon.lost_map("a")  # nothing in view matched: lost, not diverged
+    mon.reset("a")
+    assert not mon.lost_map("a") and len(mon.recent["a"]) == 0
