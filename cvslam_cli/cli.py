@@ -772,8 +772,8 @@ def do_fuse(
             )
         if v.lost:
             log.warning(
-                "%s: lost %d time(s) -- the map contradicted its pose -- and found again in "
-                "the map %d time(s) (fuse/events.csv: lost, relocalisation)",
+                "%s: lost %d time(s) -- the map contradicted its pose, or it lost the map -- "
+                "and found again in it %d time(s) (fuse/events.csv: lost, relocalisation)",
                 name,
                 v.lost,
                 v.relocalised,

@@ -122,8 +122,8 @@ class VehicleFuse:
     # localisation and later), and seconds from its start to the first of them (None: none)
     prior_landmarks: int = 0
     first_prior_s: float | None = None
-    # times the map contradicted its pose and it was lost, and found again, in this run
-    # (estimation/relocalisation.py; events.csv's lost and relocalisation events)
+    # frames where it was lost (the map contradicted its pose, or it lost the map) and found
+    # again in this run (estimation/relocalisation.py; events.csv's lost and relocalisation)
     lost: int = 0
     relocalised: int = 0
 
