@@ -337,8 +337,10 @@ class RelocalisationConfig:
     forgotten (standard deviations `position_sigma_m`, `velocity_sigma_m_s`,
     `attitude_sigma_rad`), so are the landmarks it alone mapped since it last tracked the
     map, and it is found again in the map as for an unknown initial pose. After
-    `max_per_vehicle` losses of one vehicle the next is a divergence. `enabled` false: no
-    check, and a lost map is a divergence."""
+    `max_per_vehicle` losses of one vehicle the next is a divergence. A vehicle whose
+    position standard deviation exceeds `uncertain_sigma_ratio` times the median depth of its
+    frame is checked at every frame, and an agreeing pose taken at once instead of its
+    windows' associations. `enabled` false: no check, and a lost map is a divergence."""
 
     enabled: bool = True
     check_interval_s: float = opt(1.0, lo=0.0, lo_open=True)
@@ -347,6 +349,7 @@ class RelocalisationConfig:
     velocity_sigma_m_s: float = opt(5.0, lo=0.0, lo_open=True)
     attitude_sigma_rad: float = opt(0.2, lo=0.0, lo_open=True)
     max_per_vehicle: int = opt(5, lo=0)
+    uncertain_sigma_ratio: float = opt(0.1, lo=0.0, lo_open=True)
 
 
 @dataclass(frozen=True)

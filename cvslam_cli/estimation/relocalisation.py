@@ -43,6 +43,16 @@ is found in `localise_confirm_frames` consecutive frames (`localise.PoseConfirma
 PnP fit to look-alikes does not repeat. A check that agrees confirms the vehicle's pose
 (`VehicleRun.verified_ns`).
 
+A vehicle too uncertain for its windows (position standard deviation above
+`uncertain_sigma_ratio` times the median depth of its frame, `linearisation.too_uncertain`:
+after a long blackout) is checked at every frame, and a pose its covariance allows is taken
+at once (`Contradiction.lost` false; `UnknownPoseLocaliser.relocalise(uncertain=True)`, a
+`recognition` event), as an unknown pose is localised in the shared map, in place of the
+windows' associations: windows that wide can take look-alikes (the loop UAV after a 45 s
+blackout: at 50.2 s the iterated update had it 7 m from the truth at a 27 m sigma, at
+50.5 s its windows had taken wrong landmarks and put it 135 m off at 8 m; the check had
+found its pose at 50.0 s).
+
 A vehicle lost either way (`Slam._lose`) forgets its pose: its block of the state is made
 independent of the rest, and its position, velocity and attitude get the standard
 deviations of a lost vehicle (`JointState.forget`, `lost_variances`; biases and turn rates
@@ -65,6 +75,7 @@ import numpy as np
 
 from cvslam_cli.estimation.events import MIN_VISIBLE_FOR_LOST
 from cvslam_cli.estimation.frame import FrameMatches
+from cvslam_cli.estimation.linearisation import too_uncertain
 from cvslam_cli.estimation.localise import Localisation, PoseConfirmation, localise
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.models import MotionModel
@@ -168,19 +179,21 @@ def forget_mapped(
 
 @dataclass(frozen=True, eq=False)
 class Contradiction:
-    """A check's finding that the map by appearance contradicts a vehicle's pose: `why` (the
-    lost event's text), the pose it found (`found`) and its inliers' book ids `ids` (k,)."""
+    """A check's finding that the map by appearance contradicts a vehicle's pose (`lost`) or
+    locates a vehicle too uncertain for its windows (not `lost`): `why` (the lost event's
+    text), the pose it found (`found`) and its inliers' book ids `ids` (k,)."""
 
     why: str
     found: Localisation
     ids: I64
+    lost: bool = True
 
     def without_forgotten(self, book: LandmarkBook) -> Contradiction:
         """The same, less the inliers `book` has forgotten since (`forget_mapped`)."""
         keep = ~book.forgotten[self.ids]
         f = self.found
         found = replace(f, landmark_rows=f.landmark_rows[keep], match_rows=f.match_rows[keep])
-        return Contradiction(self.why, found, self.ids[keep])
+        return Contradiction(self.why, found, self.ids[keep], self.lost)
 
 
 class PlaceRecognition:
@@ -220,20 +233,28 @@ class PlaceRecognition:
         name = run.vin.name
         if not self.enabled:
             return None
+        pose = VehiclePose.of(self.state, run.vin)
+        s = self.settings.relocalisation
+        uncertain = too_uncertain(pose.cov[:3, :3], frame.p_cam_m, s.uncertain_sigma_ratio)
         due = (
-            name in self._untracked
+            uncertain
+            or name in self._untracked
             or self.confirmation.waiting(name)
             or frame.stamp_ns >= self._next_ns.get(name, frame.stamp_ns)
         )
         if not due:
             return None
         self._next_ns[name] = frame.stamp_ns + self.settings.relocalisation.interval_ns
-        pose = VehiclePose.of(self.state, run.vin)
         located = self._locate(run, frame, pose)
         if located is None:
             self.confirmation.drop(name)
             return None
         found, ids, d, chi2, tol_m = located
+        if chi2 <= self.settings.relocalisation.gate_chi2 and uncertain:
+            # too uncertain for its windows: found by appearance, as an unknown pose in the
+            # shared map is (one frame), before its windows take look-alikes
+            self.confirmation.drop(name)
+            return Contradiction("", found, ids, lost=False)
         if chi2 <= self.settings.relocalisation.gate_chi2:
             self.confirmation.drop(name)
             run.verified_ns = frame.stamp_ns

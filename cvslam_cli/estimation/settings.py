@@ -43,6 +43,7 @@ class RelocalisationSettings:
     velocity_sigma_m_s: float = 5.0
     attitude_sigma_rad: float = 0.2
     max_per_vehicle: int = 5
+    uncertain_sigma_ratio: float = 0.1  # found by appearance, not by its windows, above
 
 
 @dataclass(frozen=True)

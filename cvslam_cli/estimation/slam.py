@@ -242,12 +242,20 @@ class Slam:
         frame = FrameMatches.of(run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio)
         # the map by appearance against the filter's pose: a vehicle it contradicts is lost
         contradiction = self.recognition.check(run, frame) if run.localised else None
+        recognised = None
+        if contradiction is not None and not contradiction.lost:
+            recognised, contradiction = contradiction, None
         if contradiction is not None and not self._lose(run, t_ns, contradiction.why):
             contradiction = None  # diverged instead
         localising = not run.localised
         found = None
         if localising:  # pose unknown: localise in the map (an update of its own)
             out = self._localise(run, frame, contradiction)
+        elif recognised is not None:  # too uncertain for its windows: found by appearance
+            out = self.localiser.relocalise(
+                run, frame, recognised.found, recognised.ids, uncertain=True
+            )
+            localising = True
         else:
             found, out = self._associate(run, frame)
             reactivated = self._reactivate(run, frame, out)

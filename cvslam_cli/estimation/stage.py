@@ -577,6 +577,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
             velocity_sigma_m_s=cfg.relocalisation.velocity_sigma_m_s,
             attitude_sigma_rad=cfg.relocalisation.attitude_sigma_rad,
             max_per_vehicle=cfg.relocalisation.max_per_vehicle,
+            uncertain_sigma_ratio=cfg.relocalisation.uncertain_sigma_ratio,
         ),
         window=WindowSettings(
             window=cfg.window.clones,

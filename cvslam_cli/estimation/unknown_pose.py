@@ -130,16 +130,23 @@ class UnknownPoseLocaliser:
         return self._accept(run, frame, found, ids[found.landmark_rows], euler, d)
 
     def relocalise(
-        self, run: VehicleRun, frame: FrameMatches, found: Localisation, ids: I64
+        self,
+        run: VehicleRun,
+        frame: FrameMatches,
+        found: Localisation,
+        ids: I64,
+        uncertain: bool = False,
     ) -> FrameOutcome:
         """Run's vehicle, just lost because the map by appearance contradicted its pose
         (`relocalisation.PlaceRecognition`), moved at once to the pose that map gave
         (`found`, confirmed over frames already; its inliers' book ids `ids`), as a
-        confirmed localisation is (module docstring, step 4)."""
+        confirmed localisation is (module docstring, step 4); `uncertain`: not lost but too
+        uncertain for its windows (`relocalisation.py`), logged as a `recognition`."""
         pose = VehiclePose.of(self.state, run.vin)
         e0 = pose.euler_rad
         euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
-        return self._accept(run, frame, found, ids, euler, found.p_nav_m - pose.p_nav_m)
+        d = found.p_nav_m - pose.p_nav_m
+        return self._accept(run, frame, found, ids, euler, d, uncertain)
 
     def _sources(self, ids: I64) -> I64:
         """(k,) where each landmark of `ids` is: 0 in the state, 1 a prior-map landmark not
@@ -160,6 +167,7 @@ class UnknownPoseLocaliser:
         ids: I64,
         euler: F64,
         d: F64,
+        uncertain: bool = False,
     ) -> FrameOutcome:
         """The vehicle moved to the pose found, the inliers (book ids `ids`) out of the
         state (the prior map's, or evicted) brought in as many as fit, and one update with
@@ -216,6 +224,15 @@ class UnknownPoseLocaliser:
         record_observations(st, book, run, slots, frame.stamp_ns, frame.z[match_rows])
         kind = "localisation" if run.lost_ns is None else "relocalisation"
         message = self._message(frame, found, run, ids_used, d)
+        if uncertain:
+            kind = "recognition"
+            sigma_m = float(np.sqrt(np.linalg.eigvalsh(prior.cov[:3, :3])[-1]))
+            message = (
+                f"found by appearance at a position sigma of {sigma_m:.1f} m (too uncertain "
+                f"for its windows): PnP on {len(found.match_rows)} of {found.candidates} "
+                f"descriptor pairs, reprojection RMS {found.rms_px:.2f} px, moved "
+                f"{np.linalg.norm(d):.1f} m"
+            )
         run.localise(frame.stamp_ns)
         self.events.add(frame.stamp_ns, kind, vin.name, others, k, None, message)
         return out

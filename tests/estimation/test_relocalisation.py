@@ -26,6 +26,7 @@ from cvslam_cli.geometry.rotations import interpolate_positions
 from tests.scenarios import (
     MC_FILTER_OVERRIDES,
     accelerometer_glitch,
+    blackout,
     ekf_on_simulation,
     simulate_loop_uav,
 )
@@ -169,3 +170,18 @@ def test_an_imu_glitch_is_caught_by_appearance_and_the_vehicle_found_again(loop_
     assert err_on[-1] < 3.0 and rmse[True] < 0.4 * rmse[False]
     after = t_s > GLITCH_AT_S + 4.0
     assert err_on[after].max() < 3.0
+
+
+def test_a_vehicle_too_uncertain_for_its_windows_is_found_by_appearance(tmp_path: Path):
+    """After 45 s without images the loop UAV (seed 4) comes back 200 m off at a position
+    sigma of 58 m: its windows would take look-alikes (135 m off at 8 m sigma, to the end);
+    found by appearance instead (a `recognition` event), it ends near the truth."""
+    sim = simulate_loop_uav(tmp_path, 60.0, [4])[0]
+    cfg = load_config((), list(MC_FILTER_OVERRIDES))
+    res, truth = ekf_on_simulation(sim, cfg, edit=lambda fs: blackout(fs, 5.0, 50.0))
+    assert res.divergence is None
+    t_s, err = _errors(res, truth)
+    found = [e for e in res.events if e["event"] == "recognition"]
+    print(f"\nafter a 45 s blackout: final {err[-1]:.2f} m; " + found[0]["detail"])
+    assert found and "found by appearance" in found[0]["detail"]
+    assert err[t_s > 52.0].max() < 1.5 and err[-1] < 0.5
