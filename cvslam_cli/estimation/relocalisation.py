@@ -110,17 +110,25 @@ def lost_variances(model: MotionModel, s: RelocalisationSettings) -> tuple[I64, 
     return np.array(rows, dtype=np.int64), np.array(var)
 
 
-def mapped_landmarks(state: JointState, book: LandmarkBook) -> tuple[I64, F64, F64]:
-    """Every landmark with a known position: (ids (N,), nav positions (N, 3), covariances
-    (N, 3, 3)) -- the state's at their estimates now, the others (evicted, a prior map's)
-    as archived, those known to `MAX_REACTIVATION_STD_M`."""
+def mapped_landmarks(state: JointState, book: LandmarkBook) -> tuple[I64, F64]:
+    """Every landmark with a known position: (ids (N,), nav positions (N, 3)) -- the state's
+    first, in slot order, at their estimates now; then the others (evicted, a prior map's) as
+    archived, those known to `MAX_REACTIVATION_STD_M`."""
     out = np.flatnonzero(~book.in_state_mask())
     out = out[book.known(out, MAX_REACTIVATION_STD_M)]
-    slots = np.arange(state.n_landmarks)
     ids = np.concatenate([book.slot_ids, out]).astype(np.int64)
-    m = np.concatenate([state.landmarks(slots).reshape(-1, 3), book.p_nav_m[out]])
-    C = np.concatenate([state.landmark_covariances(slots).reshape(-1, 3, 3), book.cov_nav_m2[out]])
-    return ids, m, C
+    m = np.concatenate([state.landmarks().reshape(-1, 3), book.p_nav_m[out]])
+    return ids, m
+
+
+def mapped_covariances(state: JointState, book: LandmarkBook, rows: I64, ids: I64) -> F64:
+    """(k, 3, 3) nav covariances of the landmarks at `rows` of `mapped_landmarks`' `ids`: the
+    state's marginals for the state's (their rows are their slots), archived for the others."""
+    C = book.cov_nav_m2[ids[rows]].copy()
+    in_state = rows < state.n_landmarks
+    if in_state.any():
+        C[in_state] = state.landmark_covariances(rows[in_state])
+    return C
 
 
 def pose_covariance(
@@ -277,7 +285,7 @@ class PlaceRecognition:
         inliers' book ids, the offset d (6,) of its pose from the filter's, d's chi-square,
         the confirmation tolerance in metres); None when PnP finds no pose."""
         s = self.settings
-        ids, m, C = mapped_landmarks(self.state, self.book)
+        ids, m = mapped_landmarks(self.state, self.book)
         cov_p = pose.cov
         ranges = np.linalg.norm(frame.p_cam_m, axis=1)
         if not len(ranges) or len(ids) < s.localise_min_inliers:
@@ -302,7 +310,8 @@ class PlaceRecognition:
         if found is None:
             return None
         rows = near[found.landmark_rows]
-        C_pnp = pose_covariance(run, found, m[rows], C[rows], self.R_pixel_hat)
+        C = mapped_covariances(self.state, self.book, rows, ids)
+        C_pnp = pose_covariance(run, found, m[rows], C, self.R_pixel_hat)
         e0 = pose.euler_rad
         d = np.concatenate(
             [found.p_nav_m - pose.p_nav_m, (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi]

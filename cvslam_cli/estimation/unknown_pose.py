@@ -222,8 +222,6 @@ class UnknownPoseLocaliser:
         )  # fmt: skip
         others = book.other_observers(ids_used, run.index, self.names)
         record_observations(st, book, run, slots, frame.stamp_ns, frame.z[match_rows])
-        kind = "localisation" if run.lost_ns is None else "relocalisation"
-        message = self._message(frame, found, run, ids_used, d)
         if uncertain:
             kind = "recognition"
             sigma_m = float(np.sqrt(np.linalg.eigvalsh(prior.cov[:3, :3])[-1]))
@@ -233,6 +231,9 @@ class UnknownPoseLocaliser:
                 f"descriptor pairs, reprojection RMS {found.rms_px:.2f} px, moved "
                 f"{np.linalg.norm(d):.1f} m"
             )
+        else:
+            kind = "localisation" if run.lost_ns is None else "relocalisation"
+            message = self._message(frame, found, run, ids_used, d)
         run.localise(frame.stamp_ns)
         self.events.add(frame.stamp_ns, kind, vin.name, others, k, None, message)
         return out
