@@ -289,7 +289,7 @@ class MapConfig:
     max_new_depth_sigma_ratio: float = opt(0.25, lo=0.0, lo_open=True)
     new_landmark_priority: Literal["previous_frame", "current_frame"] = "previous_frame"
     landmark_coordinates: Literal["auto", "cartesian", "inverse_depth"] = "auto"
-    anchor_span_s: float = opt(1.0, lo=0.0)
+    anchor_span_s: float = opt(0.0, lo=0.0)
     reanchor_max_landmarks: int = opt(8, lo=0)
     max_view_angle_deg: float = opt(80.0, lo=0.0, hi=180.0, lo_open=True)
     others_tracking_s: float = opt(0.0, lo=0.0)

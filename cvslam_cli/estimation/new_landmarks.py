@@ -19,7 +19,12 @@ covariance and cross-covariance from the pose (standard SLAM augmentation):
 In anchored inverse depth (`landmark_coordinates.py`) the same point is written relative to
 an anchor clone of the vehicle's pose: a vehicle's new landmarks share its latest clone for
 `anchor_span_ns` (fewer clones, a smaller state), after which the next frame that adds
-landmarks clones the pose anew.
+landmarks clones the pose anew. By default (0) every such frame does: written in the camera
+that measured it, a landmark's inverse depth is linear in its disparity and Gaussian with it;
+written in an older anchor's camera it takes the measured point's skewed depth error (10 %
+at 100 m with the simulated UAVs' 1.5 m baseline) into its bearing and inverse depth, which
+the filter then takes for Gaussian (BENCHMARKS.md, "Fuse: the loop UAV's consistency, and
+the anchor of a new landmark").
 
 The state is kept under its landmark bound (`settings.landmark_bound`) by evicting in the
 order of `mapping.LandmarkBook.eviction_order`.

@@ -73,7 +73,7 @@ class SlamSettings:
     max_new_depth_sigma_ratio: float = 0.25
     new_landmark_priority: str = "previous_frame"  # or "current_frame" (new_landmarks.py)
     landmark_coordinates: CoordinatesSetting = "auto"  # landmark_coordinates.resolve
-    anchor_span_ns: int = 1_000_000_000  # new landmarks share a vehicle's anchor this long
+    anchor_span_ns: int = 0  # new landmarks share a vehicle's anchor this long
     reanchor_max_landmarks: int = 8  # reanchoring.py: lighter anchors hand theirs over
     loop_closure_gap_ns: int = 20_000_000_000
     loop_closure_min_landmarks: int = 3

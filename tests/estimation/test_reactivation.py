@@ -159,7 +159,10 @@ def test_another_vehicles_landmark_is_found_again_with_the_stricter_descriptor_r
     assert found(1, 0.8) == [1, 4]
 
 
-LOOP_SEEDS = range(2)
+# 8 runs: a NEES averaged over 2 moves by a third from one pair of seeds to the next (seeds
+# 0-1 at the default anchor of each frame: 2.63 with re-activation, 2.18 without; seeds 0-7:
+# 2.88 and 2.96)
+LOOP_SEEDS = range(8)
 LOOP_DURATION_S = 20.0
 # 60 landmarks in the state, 30 updated a frame (a UAV team's default of 60 a frame would update
 # the whole state every frame)
