@@ -124,7 +124,7 @@ def mapped_landmarks(state: JointState, book: LandmarkBook) -> tuple[I64, F64]:
 def mapped_covariances(state: JointState, book: LandmarkBook, rows: I64, ids: I64) -> F64:
     """(k, 3, 3) nav covariances of the landmarks at `rows` of `mapped_landmarks`' `ids`: the
     state's marginals for the state's (their rows are their slots), archived for the others."""
-    C = book.cov_nav_m2[ids[rows]].copy()
+    C = book.cov_nav_m2[ids[rows]]  # a copy (fancy indexing)
     in_state = rows < state.n_landmarks
     if in_state.any():
         C[in_state] = state.landmark_covariances(rows[in_state])
@@ -236,7 +236,8 @@ class PlaceRecognition:
 
     def check(self, run: VehicleRun, frame: FrameMatches) -> Contradiction | None:
         """The map's pose of run's vehicle, if this frame confirms that it disagrees with
-        the filter's (module docstring); None otherwise, or when the frame is not due for a
+        the filter's, or agrees with it while the vehicle is too uncertain for its windows
+        (`lost` false; module docstring); None otherwise, or when the frame is not due for a
         check."""
         name = run.vin.name
         if not self.enabled:
@@ -252,19 +253,16 @@ class PlaceRecognition:
         )
         if not due:
             return None
-        self._next_ns[name] = frame.stamp_ns + self.settings.relocalisation.interval_ns
+        self._next_ns[name] = frame.stamp_ns + s.interval_ns
         located = self._locate(run, frame, pose)
         if located is None:
             self.confirmation.drop(name)
             return None
         found, ids, d, chi2, tol_m = located
-        if chi2 <= self.settings.relocalisation.gate_chi2 and uncertain:
-            # too uncertain for its windows: found by appearance, as an unknown pose in the
-            # shared map is (one frame), before its windows take look-alikes
+        if chi2 <= s.gate_chi2:
             self.confirmation.drop(name)
-            return Contradiction("", found, ids, lost=False)
-        if chi2 <= self.settings.relocalisation.gate_chi2:
-            self.confirmation.drop(name)
+            if uncertain:  # found by appearance, as an unknown pose in the shared map is
+                return Contradiction("", found, ids, lost=False)  # (one frame)
             run.verified_ns = frame.stamp_ns
             return None
         if not self.confirmation.confirmed(name, d[:3], float(d[5]), tol_m):
