@@ -56,7 +56,7 @@ def triangulate(M_left: F64, M_right: F64, uv_left: F64, uv_right: F64) -> F64:
         r, J = _reprojection(M_left, M_right, theta, uv)
         JtJ = np.einsum("nki,nkj->nij", J, J)
         Jtr = np.einsum("nki,nk->ni", J, r)
-        theta = theta - np.linalg.solve(JtJ, Jtr[..., None])[..., 0]
+        theta = theta - _solve(JtJ, Jtr)
     out = X.copy()
     rho = theta[:, 2]
     good = np.isfinite(theta).all(axis=1) & (np.abs(rho) > 1e-12)
@@ -102,7 +102,18 @@ def _triangulate_dlt(M_left: F64, M_right: F64, uv_l: F64, uv_r: F64) -> F64:
     Ax, b = A[:, :, :3], -A[:, :, 3]
     AtA = np.einsum("nij,nik->njk", Ax, Ax)
     Atb = np.einsum("nij,ni->nj", Ax, b)
-    return np.linalg.solve(AtA, Atb[..., None])[..., 0]
+    return _solve(AtA, Atb)
+
+
+def _solve(A: F64, b: F64 | None = None) -> F64:
+    """x (n, 3) with A x = b for (n, 3, 3) and (n, 3), or A^-1 (n, 3, 3) without b; where some
+    A is singular (a point at infinity: equal pixels on a rectified rig) the least-norm
+    solutions (pseudo-inverse): no error for the points that callers drop."""
+    try:
+        return np.linalg.inv(A) if b is None else np.linalg.solve(A, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        A_inv = np.linalg.pinv(A)
+        return A_inv if b is None else np.einsum("nij,nj->ni", A_inv, b)
 
 
 def triangulation_covariance(
@@ -121,7 +132,8 @@ def triangulation_covariance(
     z = X[:, 2]
     theta = np.stack([X[:, 0] / z, X[:, 1] / z, 1.0 / z], axis=1)
     _, J = _reprojection(M_left, M_right, theta, uv)
-    cov_theta = np.linalg.inv(np.einsum("nki,nkj->nij", J, J))
+    JtJ = np.einsum("nki,nkj->nij", J, J)
+    cov_theta = _solve(JtJ)
     D = np.zeros((len(X), 3, 3))  # d X / d theta, X = (alpha, beta, 1) / rho
     D[:, 0, 0] = D[:, 1, 1] = z
     D[:, :, 2] = -X * z[:, None]
