@@ -49,8 +49,7 @@ def triangulate(M_left: F64, M_right: F64, uv_left: F64, uv_right: F64) -> F64:
     ok = np.abs(X[:, 2]) > 1e-12
     if not ok.any():
         return X
-    z = X[ok, 2]
-    theta = np.stack([X[ok, 0] / z, X[ok, 1] / z, 1.0 / z], axis=1)  # (alpha, beta, rho)
+    theta = _inverse_depth(X[ok])
     uv = np.concatenate([uv_l[ok], uv_r[ok]], axis=1)  # (n, 4)
     for _ in range(REFINE_STEPS):
         r, J = _reprojection(M_left, M_right, theta, uv)
@@ -65,6 +64,12 @@ def triangulate(M_left: F64, M_right: F64, uv_left: F64, uv_right: F64) -> F64:
         np.stack([theta[good, 0], theta[good, 1], np.ones(good.sum())], axis=1) / rho[good, None]
     )
     return out
+
+
+def _inverse_depth(X: F64) -> F64:
+    """(n, 3) points in the left camera -> their (alpha, beta, rho) = (x / z, y / z, 1 / z)."""
+    z = X[:, 2]
+    return np.stack([X[:, 0] / z, X[:, 1] / z, 1.0 / z], axis=1)
 
 
 def _reprojection(M_left: F64, M_right: F64, theta: F64, uv: F64) -> tuple[F64, F64]:
@@ -117,21 +122,27 @@ def _solve(A: F64, b: F64 | None = None) -> F64:
 
 
 def triangulation_covariance(
-    M_left: F64, M_right: F64, uv_left: F64, uv_right: F64, sigma_px: float | F64
+    M_left: F64,
+    M_right: F64,
+    uv_left: F64,
+    uv_right: F64,
+    sigma_px: float | F64,
+    p_cam_m: F64 | None = None,
 ) -> F64:
     """(N, 3, 3) covariance of `triangulate` for independent N(0, sigma_px^2) pixel noise on
     each of the four coordinates (`sigma_px` scalar or one per point), points in front of the
     left camera: the least-squares point's first-order covariance sigma^2 (J^T J)^-1 in
     (alpha, beta, rho) (J (4, 3): the projections' Jacobian there; exact for a rectified rig,
-    whose projections are linear in them), mapped to the point by d X / d (alpha, beta, rho)."""
-    X = triangulate(M_left, M_right, uv_left, uv_right)
+    whose projections are linear in them), mapped to the point by d X / d (alpha, beta, rho).
+    `p_cam_m` (N, 3): the points `triangulate` gave for these pixels, when the caller has
+    them (else triangulated here)."""
+    X = triangulate(M_left, M_right, uv_left, uv_right) if p_cam_m is None else p_cam_m
     uv = np.concatenate(
         [np.asarray(uv_left, dtype=float).reshape(-1, 2),
          np.asarray(uv_right, dtype=float).reshape(-1, 2)], axis=1,
     )  # fmt: skip
     z = X[:, 2]
-    theta = np.stack([X[:, 0] / z, X[:, 1] / z, 1.0 / z], axis=1)
-    _, J = _reprojection(M_left, M_right, theta, uv)
+    _, J = _reprojection(M_left, M_right, _inverse_depth(X), uv)
     JtJ = np.einsum("nki,nkj->nij", J, J)
     cov_theta = _solve(JtJ)
     D = np.zeros((len(X), 3, 3))  # d X / d theta, X = (alpha, beta, 1) / rho
@@ -154,4 +165,5 @@ def triangulate_matches(
     T_rl = np.linalg.inv(rig.T_left_right)
     z_right = p_cam @ T_rl[2, :3] + T_rl[2, 3]
     keep = (p_cam[:, 2] > 0) & (z_right > 0) & (np.linalg.norm(p_cam, axis=1) <= max_range_m)
-    return p_cam, triangulation_covariance(M_l, M_r, ul[keep], ur[keep], sigma_px), keep
+    cov = triangulation_covariance(M_l, M_r, ul[keep], ur[keep], sigma_px, p_cam[keep])
+    return p_cam, cov, keep

@@ -244,7 +244,7 @@ def observe_frame(
     good = (p_cam[:, 2] > 0.1) & (np.linalg.norm(p_cam, axis=1) < mode.max_range_m)
     m_left, m_right, ids, p_cam = m_left[good], m_right[good], ids[good], p_cam[good]
     uvl_m, uvr_m = uvl_m[good], uvr_m[good]
-    cov = triangulation_covariance(M_l, M_r, uvl_m, uvr_m, max(sigma, 0.05))
+    cov = triangulation_covariance(M_l, M_r, uvl_m, uvr_m, max(sigma, 0.05), p_cam)
     dl, dr = left_desc[m_left].astype(float), right_desc.astype(float)
     # squared distances |a|^2 + |b|^2 - 2 a.b for every (match, right keypoint) pair
     sq = (dl * dl).sum(1)[:, None] + (dr * dr).sum(1)[None, :] - 2.0 * dl @ dr.T

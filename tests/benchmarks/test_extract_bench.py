@@ -164,7 +164,7 @@ def _triangulate(
     T_rl = np.linalg.inv(rig.T_left_right)
     z_right = p @ T_rl[2, :3] + T_rl[2, 3]
     keep = (p[:, 2] > 0) & (z_right > 0) & (np.linalg.norm(p, axis=1) <= max_range)
-    triangulation_covariance(M_l, M_r, ul[keep], ur[keep], cfg.stereo.pixel_sigma_px)
+    triangulation_covariance(M_l, M_r, ul[keep], ur[keep], cfg.stereo.pixel_sigma_px, p[keep])
     return int(keep.sum())
 
 
