@@ -942,6 +942,11 @@ def do_refine(
             name, v.keyframes, v.model, errors, v.prior_sigma_position_m,
             v.prior_sigma_attitude_rad,
         )  # fmt: skip
+        if v.right_cx_px == v.right_cx_px:  # NaN: not estimated
+            log.info(
+                "%s: right camera's principal point u0 corrected by %+.3f px (+- %.3f)",
+                name, v.right_cx_px, v.right_cx_std_px,
+            )  # fmt: skip
     log.info(
         "refine: %d landmarks, %d observations (%d outliers), error %.4g -> %.4g in %d "
         "iterations, %.1f s; wrote %s",

@@ -440,8 +440,9 @@ class RefineConfig:
     factors (0: the features' own, extract.stereo.pixel_sigma_px or the simulator's pixel
     noise), the robust kernel and its threshold (in standard deviations), the standard
     deviation holding a ground robot's height, roll and pitch, Levenberg-Marquardt's limits
-    and its elimination ordering, and whether the landmarks' marginal covariances are
-    computed (map std columns)."""
+    and its elimination ordering, whether the landmarks' marginal covariances are
+    computed (map std columns), and whether each rig's right-camera principal point u0 is
+    estimated (prior standard deviation right_cx_sigma_px; refine/right_cx.py)."""
 
     source: Literal["fuse", "fuse_ekf", "fuse_single", "fuse_ekf_single"] = "fuse"
     every_nth: int = opt(1, lo=1)
@@ -453,6 +454,8 @@ class RefineConfig:
     relative_error_tol: float = opt(1e-6, lo=0.0)
     ordering: Literal["metis", "colamd"] = "metis"
     landmark_covariances: bool = True
+    estimate_right_cx: bool = False
+    right_cx_sigma_px: float = opt(1.0, lo=0.0, lo_open=True)
     reassociation: ReassociationConfig = opt(ReassociationConfig())
 
 

@@ -324,16 +324,19 @@ def residual_scale_px(r_px: F64) -> float:
     return float(1.4826 * np.median(np.abs(r_px))) if r_px.size else float("nan")
 
 
-def warm_start(graph: Graph, values: gtsam.Values) -> None:
+def warm_start(graph: Graph, values: gtsam.Values, landmarks: bool = False) -> None:
     """Replace the vehicle states' initial values of `graph` (poses, velocities, biases,
     body rates) by those of an earlier solution `values` of a graph over the same vehicles
-    and keyframes (landmark keys differ between such graphs: they are left as they are)."""
+    and keyframes; the landmarks' too when `landmarks` (a graph of the same landmarks: the
+    landmark keys of different re-association rounds' graphs differ)."""
     keys = graph.initial.keys()
     for key in keys:
-        if gtsam.Symbol(key).chr() == ord("l") or not values.exists(key):
-            continue
         sym = chr(gtsam.Symbol(key).chr())
-        if sym == "x":
+        if (sym == "l" and not landmarks) or not values.exists(key):
+            continue
+        if sym == "l":
+            graph.initial.update(key, values.atPoint3(key))
+        elif sym == "x":
             graph.initial.update(key, values.atPose3(key))
         elif sym == "b":
             graph.initial.update(key, values.atConstantBias(key))

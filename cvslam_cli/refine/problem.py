@@ -81,7 +81,9 @@ class RefineSettings:
     standard deviation (m, rad) holding a ground robot's height, roll and pitch (its 3-DOF
     model fixes them); LM's iteration limit and relative error decrease to stop at, and
     the elimination ordering of its linear solves (METIS's nested dissection or COLAMD);
-    landmark_covariances: also the landmarks' marginal covariances (map std columns)."""
+    landmark_covariances: also the landmarks' marginal covariances (map std columns);
+    estimate_right_cx: also correct each rig's right-camera principal point u0 (px, prior
+    N(0, right_cx_sigma_px^2); `right_cx.py`)."""
 
     pixel_sigma_px: float = 0.5
     robust: RobustKernel = "huber"
@@ -91,6 +93,8 @@ class RefineSettings:
     relative_error_tol: float = 1e-6
     ordering: Ordering = "metis"
     landmark_covariances: bool = True
+    estimate_right_cx: bool = False
+    right_cx_sigma_px: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)

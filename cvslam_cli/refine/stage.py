@@ -48,7 +48,7 @@ from cvslam_cli.io.trajectory import read_tum, write_tum
 from cvslam_cli.records.landmark_archive import LandmarkArchive
 from cvslam_cli.records.landmarks import LandmarkMap
 from cvslam_cli.records.poses import PoseTable
-from cvslam_cli.refine import graph
+from cvslam_cli.refine import graph, right_cx
 from cvslam_cli.refine.build import build_problem, reassociation_start
 from cvslam_cli.refine.keyframe_features import keyframe_features
 from cvslam_cli.refine.map_archive import observed, refined_archive
@@ -68,6 +68,8 @@ class VehicleRefine:
     rmse_m: float
     prior_sigma_position_m: float  # the gauge: the prior on the first keyframe
     prior_sigma_attitude_rad: float
+    right_cx_px: float  # the right camera's u0 correction and its std (nan: not estimated)
+    right_cx_std_px: float
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,17 @@ def feature_pixel_sigma(metas: Sequence[dict[str, Any]]) -> float | None:
     return max(found) if found else None
 
 
+def extract_right_cx(metas: Sequence[dict[str, Any]], problem: RefineProblem) -> np.ndarray:
+    """(V,) the right-camera u0 correction each vehicle's feature file already holds
+    (`extract.stereo.calibrate_disparity_offset` moves u0 by -offset_px; 0 without it), so
+    that refine's own estimate keeps its prior on the calibration."""
+    applied = {
+        m.get("vehicle"): -float(m.get("disparity_offset", {}).get("applied_px", 0.0))
+        for m in metas
+    }
+    return np.array([applied.get(v.name, 0.0) for v in problem.vehicles])
+
+
 def settings_of(cfg: Config, metas: Sequence[dict[str, Any]]) -> RefineSettings:
     rc = cfg.refine
     sigma = rc.pixel_sigma_px
@@ -130,6 +143,8 @@ def settings_of(cfg: Config, metas: Sequence[dict[str, Any]]) -> RefineSettings:
         relative_error_tol=rc.relative_error_tol,
         ordering=rc.ordering,
         landmark_covariances=rc.landmark_covariances,
+        estimate_right_cx=rc.estimate_right_cx,
+        right_cx_sigma_px=rc.right_cx_sigma_px,
     )
 
 
@@ -248,14 +263,21 @@ def _write(
 
 
 def _lm(
-    problem: RefineProblem, settings: RefineSettings, progress: bool, warm: Any = None
+    problem: RefineProblem,
+    settings: RefineSettings,
+    progress: bool,
+    warm: Any = None,
+    warm_landmarks: bool = False,
+    level: int = logging.INFO,
 ) -> tuple[graph.Graph, Any, float, float, int]:
     """Build the graph (its vehicle states started at `warm`, an earlier solution, when
-    given) and solve it with Levenberg-Marquardt, with a progress bar."""
+    given; its landmarks too when `warm_landmarks`: a solution of the same landmarks) and
+    solve it with Levenberg-Marquardt, with a progress bar; logged at `level`."""
     g = graph.build(problem, settings)
     if warm is not None:
-        graph.warm_start(g, warm)
-    log.info(
+        graph.warm_start(g, warm, warm_landmarks)
+    log.log(
+        level,
         "refine: %d keyframes, %d landmarks, %d observations; factors %s",
         sum(len(v.stamps_ns) for v in problem.vehicles),
         len(problem.landmark_id),
@@ -278,11 +300,44 @@ def _lm(
 
     with bar:
         values, e0, e1, iterations = graph.solve(g, settings, step)
-    log.info(
+    log.log(
+        level,
         "refine: error %.6g -> %.6g in %d iterations (%.1f s)",
         e0, e1, iterations, time.perf_counter() - start,
     )  # fmt: skip
     return g, values, e0, e1, iterations
+
+
+def _calibrated(
+    problem: RefineProblem,
+    settings: RefineSettings,
+    progress: bool,
+    c0_px: Any = None,
+    warm: Any = None,
+    warm_landmarks: bool = False,
+) -> tuple[RefineProblem, tuple[graph.Graph, Any, float, float, int], right_cx.RightCx]:
+    """The solution with each rig's right-camera u0 estimated on the way (`right_cx.py`;
+    `problem`'s right cameras already moved by c0_px from the calibration): the corrected
+    problem, its solution (graph, values, first and last error, iterations of every solve)
+    and the estimate."""
+    first: list[float] = []
+    iterations = 0
+
+    def solve(p: RefineProblem, start: Any, same: bool) -> tuple[Any, Any, float]:
+        nonlocal iterations
+        sol = _lm(p, settings, progress, start, same, logging.DEBUG)
+        first.append(sol[2])
+        iterations += sol[4]
+        return sol, sol[1], sol[3]
+
+    est = right_cx.estimate(problem, solve, settings.right_cx_sigma_px, c0_px, warm, warm_landmarks)
+    g, values, _, e1, _ = est.solution
+    log.info(
+        "refine: right cameras' u0 corrected by %s px (%d solves, %d iterations); error %.6g",
+        ", ".join(f"{c:+.3f} +- {sd:.3f}" for c, sd in zip(est.c_px, est.std_px, strict=True)),
+        est.solves, iterations, e1,
+    )  # fmt: skip
+    return est.problem, (g, values, first[0], e1, iterations), est
 
 
 def _marginals(
@@ -402,11 +457,18 @@ def run(
         )
     rs = reassociation_settings(cfg)
     rounds: RoundsResult | None = None
+    cx: right_cx.RightCx | None = None
     # the sparse factorisations gain from threads, unlike the filter's small matrices
     with threadpool_limits(limits=None):
-        if rs.rounds == 0:
+        c0 = extract_right_cx(metas, problem)
+        if rs.rounds == 0 and settings.estimate_right_cx:
+            problem, (g, values, e0, e1, it), cx = _calibrated(problem, settings, progress, c0)
+        elif rs.rounds == 0:
             g, values, e0, e1, it = _lm(problem, settings, progress)
         else:
+            first = None
+            if settings.estimate_right_cx:  # the rounds predict with the corrected cameras
+                problem, first, cx = _calibrated(problem, settings, progress, c0)
             try:
                 rounds = _reassociated(
                     problem, {v: features[v] for v in vehicles}, observations, source_map,
@@ -416,6 +478,11 @@ def run(
                 raise CvslamError(f"{layout.root}: {exc}; run `cvslam extract --force`") from None
             problem, g, values = rounds.problem, rounds.graph, rounds.values
             e0, e1, it = rounds.initial_error, rounds.final_error, rounds.iterations
+            if cx is not None and first is not None:  # again, over the final observations
+                problem, (g, values, _, e1, more), cx = _calibrated(
+                    problem, settings, progress, cx.c_px, values, True
+                )
+                e0, it = first[2], it + first[4] + more
         try:
             res = _marginals(problem, g, values, settings, e0, e1, it, progress)
         except IndeterminateError as exc:
@@ -433,7 +500,7 @@ def run(
     with atomic_dir(out.path) as tmp:
         _write(FuseFolder(tmp), src, tables, res, lm, archive, source)
     wall = time.perf_counter() - t_start
-    summary = _summary(out.path, source, problem, res, tracks, tables, truth, settings, wall)
+    summary = _summary(out.path, source, problem, res, tracks, tables, truth, settings, wall, cx)
     if rounds is not None:
         summary = dataclasses.replace(
             summary, rounds=rounds.rounds, removed_by_check=rounds.removed
@@ -452,9 +519,13 @@ def _summary(
     truth: dict[str, PoseTable],
     settings: RefineSettings,
     wall: float,
+    cx: right_cx.RightCx | None,
 ) -> RefineSummary:
     vehicles = {}
-    for v in problem.vehicles:
+    n = len(problem.vehicles)
+    c_px = np.full(n, np.nan) if cx is None else cx.c_px
+    c_std_px = np.full(n, np.nan) if cx is None else cx.std_px
+    for i, v in enumerate(problem.vehicles):
         src = tracks[v.name]
         at_kf = np.isin(src.stamps_ns, v.stamps_ns)
         src_kf = PoseTable(src.stamps_ns[at_kf], src.p_nav_m[at_kf], src.q_nav_body_xyzw[at_kf])
@@ -467,6 +538,8 @@ def _summary(
             rmse_m=_rmse(tables[v.name], truth.get(v.name)),
             prior_sigma_position_m=float(np.sqrt(np.trace(prior[:3, :3]))),
             prior_sigma_attitude_rad=float(np.sqrt(np.trace(prior[3:, 3:]))),
+            right_cx_px=float(c_px[i]),
+            right_cx_std_px=float(c_std_px[i]),
         )
     return RefineSummary(
         out_dir, False, source, vehicles, len(problem.landmark_id), len(problem.z_px),
