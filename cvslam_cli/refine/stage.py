@@ -320,13 +320,14 @@ def _calibrated(
     `problem`'s right cameras already moved by c0_px from the calibration): the corrected
     problem, its solution (graph, values, first and last error, iterations of every solve)
     and the estimate."""
-    first: list[float] = []
+    e_first: float | None = None  # the first solve's initial error
     iterations = 0
 
     def solve(p: RefineProblem, start: Any, same: bool) -> tuple[Any, Any, float]:
-        nonlocal iterations
+        nonlocal e_first, iterations
         sol = _lm(p, settings, progress, start, same, logging.DEBUG)
-        first.append(sol[2])
+        if e_first is None:
+            e_first = sol[2]
         iterations += sol[4]
         return sol, sol[1], sol[3]
 
@@ -337,7 +338,8 @@ def _calibrated(
         ", ".join(f"{c:+.3f} +- {sd:.3f}" for c, sd in zip(est.c_px, est.std_px, strict=True)),
         est.solves, iterations, e1,
     )  # fmt: skip
-    return est.problem, (g, values, first[0], e1, iterations), est
+    assert e_first is not None  # estimate solves at least once
+    return est.problem, (g, values, e_first, e1, iterations), est
 
 
 def _marginals(
@@ -466,9 +468,9 @@ def run(
         elif rs.rounds == 0:
             g, values, e0, e1, it = _lm(problem, settings, progress)
         else:
-            first = None
+            before = None  # the solution the right cameras were first corrected at
             if settings.estimate_right_cx:  # the rounds predict with the corrected cameras
-                problem, first, cx = _calibrated(problem, settings, progress, c0)
+                problem, before, cx = _calibrated(problem, settings, progress, c0)
             try:
                 rounds = _reassociated(
                     problem, {v: features[v] for v in vehicles}, observations, source_map,
@@ -478,11 +480,11 @@ def run(
                 raise CvslamError(f"{layout.root}: {exc}; run `cvslam extract --force`") from None
             problem, g, values = rounds.problem, rounds.graph, rounds.values
             e0, e1, it = rounds.initial_error, rounds.final_error, rounds.iterations
-            if cx is not None and first is not None:  # again, over the final observations
+            if before is not None and cx is not None:  # again, over the final observations
                 problem, (g, values, _, e1, more), cx = _calibrated(
                     problem, settings, progress, cx.c_px, values, True
                 )
-                e0, it = first[2], it + first[4] + more
+                e0, it = before[2], it + before[4] + more
         try:
             res = _marginals(problem, g, values, settings, e0, e1, it, progress)
         except IndeterminateError as exc:
