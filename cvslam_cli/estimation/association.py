@@ -11,7 +11,10 @@ landmark's innovation window, the chi-square gate d2_ij = (z_i - z_j)^T S_j^-1 (
 chi2_4(p). Among its candidates a landmark takes the one with the smallest descriptor
 distance D1, if D1 < ratio * D2 (second smallest in the window) and D1 < max_distance; a match
 claimed by several landmarks goes to the smallest D1. Everything is vectorised over
-landmarks x matches (a frame has ~100 landmarks in view and a few hundred matches).
+landmarks x matches (a frame has ~100 landmarks in view and a few hundred matches); the full
+d2 is computed only for the landmarks and matches that meet inside some window's bounding box
+(`_in_boxes`, a necessary condition of the gate): the same decisions at a fraction of the
+pairs.
 
 Which landmarks are predicted at all (`visible_slots`): in front of the cameras, inside both
 images, and viewed from within the maximum angle of their mean viewing direction
@@ -175,6 +178,19 @@ def descriptor_distances(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> NDArray[
     return np.sqrt(np.maximum(d2, 0.0))
 
 
+def _in_boxes(pred: LandmarkPrediction, z_obs: F64, gate_chi2: float) -> NDArray[np.bool_]:
+    """(k, M) whether match i lies inside landmark j's window's bounding box in the left
+    image: |z_i,c - z_j,c| <= sqrt(gate S_j,cc) for c = u_l, v_l. A necessary condition of
+    the gate (for S positive definite, d2 >= (z_i,c - z_j,c)^2 / S_j,cc for every c), with a
+    margin of 1e-6 for rounding, so that the full d2 is computed only where it can pass: a
+    frame's windows cover a small part of its image."""
+    out = np.ones((len(pred.z), len(z_obs)), dtype=bool)
+    for c in range(2):
+        half = np.sqrt(gate_chi2 * pred.S[:, c, c]) * (1.0 + 1e-6)
+        out &= np.abs(z_obs[None, :, c] - pred.z[:, None, c]) <= half[:, None]
+    return out
+
+
 def associate(
     pred: LandmarkPrediction,
     landmark_desc: NDArray[np.uint8],
@@ -190,9 +206,14 @@ def associate(
     if k == 0 or M == 0:
         e = np.zeros(0, dtype=np.int64)
         return Association(e, e, np.zeros(0), np.zeros(0), np.zeros(M, dtype=bool))
-    S_inv = np.linalg.inv(pred.S)
-    diff = z_obs[None, :, :] - pred.z[:, None, :]  # (k, M, 4)
-    d2 = np.sum((diff @ S_inv) * diff, axis=2)  # (k, M); S_inv symmetric
+    # only the landmarks and matches that meet inside some window's bounding box
+    box = _in_boxes(pred, z_obs, gate_chi2)
+    lm_in, obs_in = np.flatnonzero(box.any(axis=1)), np.flatnonzero(box.any(axis=0))
+    d2 = np.full((k, M), np.inf)
+    if len(lm_in):
+        S_inv = np.linalg.inv(pred.S[lm_in])
+        diff = z_obs[None, obs_in, :] - pred.z[lm_in, None, :]  # (k', M', 4)
+        d2[np.ix_(lm_in, obs_in)] = np.sum((diff @ S_inv) * diff, axis=2)  # S_inv symmetric
     gated = d2 < gate_chi2
     near = gated.any(axis=0)
     rows = np.flatnonzero(gated.any(axis=1))
@@ -334,7 +355,7 @@ def in_view_rows(vin: VehicleInput, p: F64, euler: F64, m_nav_m: F64) -> I64:
     front = np.flatnonzero(depth > 0)
     if not len(front):
         return front
-    z_pred, _, _ = vin.obs.predict(p, euler, m_nav_m[front])
+    z_pred = vin.obs.project(p, euler, m_nav_m[front])
     return front[in_view(z_pred, depth[front], vin.features.rig.size_px)]
 
 

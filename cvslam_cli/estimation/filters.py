@@ -169,6 +169,14 @@ class BlockRows:
         return HP
 
 
+def _solve_lower(C: F64, B: F64) -> F64:
+    """C^-1 B for C lower triangular (a Cholesky factor, finite by construction) and B (m, n)
+    large: `solve_triangular` without its finiteness scan of B (a full pass, as long as the
+    solve at a two-UAV state's size). A non-finite state still shows: the frame's record
+    checks the vehicle's state and covariance (`Slam._record`: divergence)."""
+    return solve_triangular(C, B, lower=True, check_finite=False)
+
+
 def _whitened(
     P: F64, H: F64, R: F64, y: F64, h: F64, cols: I64 | None, blocks: BlockRows | None = None
 ) -> tuple[F64, F64, F64, F64, F64, float]:
@@ -189,7 +197,7 @@ def _whitened(
         PHt = P[cols].T @ H.T  # P[cols].T: the same (n, len(cols)) numbers as P[:, cols]
         S = H @ PHt[cols] + R
     C = np.linalg.cholesky(0.5 * (S + S.T))
-    V = solve_triangular(C, PHt.T, lower=True).T  # (n, m)
+    V = _solve_lower(C, PHt.T).T  # (n, m)
     w = solve_triangular(C, y - h, lower=True)
     return PHt, S, C, V, w, float(w @ w)
 
@@ -242,7 +250,7 @@ def hinf_update(
     if not np.isfinite(gamma):
         return UpdateResult(x_new, 0.5 * (P_ekf + P_ekf.T), nis, gamma, False)
     B = np.linalg.cholesky(gamma**2 * np.eye(len(idx)) - P_ekf_LL)  # exists: lam < gamma^2
-    G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n)
+    G = _solve_lower(B, P_ekf_L.T)  # (l, n)
     P_new = P_ekf + G.T @ G
     return UpdateResult(x_new, 0.5 * (P_new + P_new.T), nis, gamma, raised)
 
@@ -349,7 +357,7 @@ def hinf_update_inplace(
     x += V @ w
     if np.isfinite(gamma):
         B = np.linalg.cholesky(gamma**2 * np.eye(len(P_ekf_LL)) - P_ekf_LL)
-        G = solve_triangular(B, P_ekf_L.T, lower=True)  # (l, n)
+        G = _solve_lower(B, P_ekf_L.T)  # (l, n)
         _syrk_into(acc, G.T, 1.0)  # P_ekf + G^T G
     _mirror_upper(acc, P)
     return UpdateResult(x, P, nis, gamma, raised)

@@ -202,7 +202,7 @@ def localise(
     R_cam_nav, _ = cv2.Rodrigues(rvec)
     p, euler = body_pose_from_camera(obs, R_cam_nav, tvec.ravel())
     # every putative pair, re-checked at the refined pose in both images
-    z_pred, _, _ = obs.predict(p, euler, obj)
+    z_pred = obs.project(p, euler, obj)
     res = (z_pred - z_obs[rows]).reshape(-1, 2, 2)
     dist = np.linalg.norm(res, axis=2)  # (k, 2): left and right image
     with np.errstate(invalid="ignore"):

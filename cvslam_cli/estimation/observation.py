@@ -38,6 +38,12 @@ from cvslam_cli.geometry.rotations import euler_zyx_derivatives, euler_zyx_to_ma
 from cvslam_cli.records.arrays import F64
 
 
+def _pixels(K: F64, p_cam_m: F64) -> tuple[F64, F64]:
+    """(u, v) (N,) of points p_cam_m (N, 3) in a camera with intrinsics K (3, 3) (eq. 19)."""
+    x, y, zc = p_cam_m[:, 0], p_cam_m[:, 1], p_cam_m[:, 2]
+    return K[0, 0] * x / zc + K[0, 1] * y / zc + K[0, 2], K[1, 1] * y / zc + K[1, 2]
+
+
 @dataclass(frozen=True, eq=False)
 class StereoObservationModel:
     """Left/right cameras: K (2, 3, 3), R_cam_body (2, 3, 3), t_body_cam (2, 3) (camera
@@ -72,6 +78,19 @@ class StereoObservationModel:
             and np.all(np.abs(b_cam[1:]) <= tol * np.linalg.norm(b_cam))
         )
 
+    def project(self, p_nav_m: F64, euler_rad: F64, m_nav_m: F64) -> F64:
+        """(N, 3) landmarks seen from pose (p, Psi) -> z (N, 4) = (u_l, v_l, u_r, v_r): the
+        pixels of `predict` without its Jacobians (the same arithmetic, bit for bit), for
+        the visibility tests that read only where a point falls."""
+        C = euler_zyx_to_matrix(*euler_rad)
+        w = np.atleast_2d(np.asarray(m_nav_m, dtype=float)) - np.asarray(p_nav_m, dtype=float)
+        q = w @ C
+        z = np.empty((w.shape[0], 4))
+        for c in range(2):
+            pc = (q - self.t_body_cam[c]) @ self.R_cam_body[c].T
+            z[:, 2 * c], z[:, 2 * c + 1] = _pixels(self.K[c], pc)
+        return z
+
     def predict(self, p_nav_m: F64, euler_rad: F64, m_nav_m: F64) -> tuple[F64, F64, F64]:
         """(N, 3) landmarks seen from pose (p, Psi) -> z (N, 4) = (u_l, v_l, u_r, v_r),
         H_pose (N, 4, 6) w.r.t. (p, Psi), H_m (N, 4, 3) w.r.t. the landmark (eq. 19)."""
@@ -89,8 +108,7 @@ class StereoObservationModel:
             pc = (q - self.t_body_cam[c]) @ R.T
             x, y, zc = pc[:, 0], pc[:, 1], pc[:, 2]
             K = self.K[c]
-            z[:, 2 * c] = K[0, 0] * x / zc + K[0, 1] * y / zc + K[0, 2]
-            z[:, 2 * c + 1] = K[1, 1] * y / zc + K[1, 2]
+            z[:, 2 * c], z[:, 2 * c + 1] = _pixels(K, pc)
             J = np.zeros((n, 2, 3))
             J[:, 0, 0] = K[0, 0] / zc
             J[:, 0, 1] = K[0, 1] / zc

@@ -10,6 +10,7 @@ from cvslam_cli.estimation.association import (
     TYPE_2,
     TYPE_3,
     LandmarkPrediction,
+    _in_boxes,
     associate,
     classify,
     noise_scale,
@@ -60,6 +61,31 @@ def test_association_gates_then_takes_the_closest_distinctive_descriptor():
     a = associate(_prediction(z), desc_lm, z_obs, d, gate_chi2=18.47, ratio=0.8, max_distance=350)
     assert list(a.pred_index) == [0] and list(a.match_index) == [0]
     assert list(a.near_landmark) == [True, False, True, True, False]
+
+
+def test_every_pair_inside_a_window_lies_in_its_bounding_box():
+    """The bounding boxes that spare the full gate computation are a necessary condition of
+    it: over random correlated innovation covariances, every (landmark, match) pair whose
+    chi-square distance passes the gate is inside the landmark's box, and the boxes leave
+    most far pairs out (what they are for)."""
+    k, M, gate = 200, 300, 18.47
+    A = RNG.normal(size=(k, 4, 4)) * RNG.uniform(0.3, 6.0, size=(k, 1, 1))
+    S = A @ np.swapaxes(A, 1, 2) + 0.05 * np.eye(4)
+    z = RNG.uniform(0, 600, size=(k, 4))
+    pred = LandmarkPrediction(np.arange(k), z, np.zeros((k, 4, 1)), np.zeros((k, 4, 3)), S)
+    # half the matches drawn from some landmark's innovation distribution (mostly inside its
+    # window, some just outside), half anywhere
+    j = RNG.integers(0, k, M // 2)
+    near = z[j] + 1.5 * np.einsum(
+        "mij,mj->mi", np.linalg.cholesky(S[j]), RNG.normal(size=(M // 2, 4))
+    )
+    z_obs = np.concatenate([near, RNG.uniform(0, 600, size=(M - M // 2, 4))])
+    diff = z_obs[None, :, :] - z[:, None, :]
+    d2 = np.einsum("kmi,kij,kmj->km", diff, np.linalg.inv(S), diff)
+    box = _in_boxes(pred, z_obs, gate)
+    assert (d2 < gate).sum() > 100  # the test has pairs inside windows
+    assert not np.any((d2 < gate) & ~box)
+    assert box.mean() < 0.2
 
 
 def test_a_match_goes_to_one_landmark_only():

@@ -45,6 +45,16 @@ def test_prediction_equals_projection_through_the_camera_matrices(rig):
         np.testing.assert_allclose(z[:, cols], h[:, :2] / h[:, 2:3], atol=1e-9)
 
 
+def test_projection_is_the_predictions_pixels_bit_for_bit(rig):
+    """`project` (the visibility tests' pixels) is `predict` without its Jacobians: the same
+    numbers, so that choosing it changes no decision."""
+    model = StereoObservationModel.from_rig(rig)
+    p, euler, m = _scene()
+    z, _, _ = model.predict(p, euler, m)
+    assert np.array_equal(model.project(p, euler, m), z)
+    assert np.array_equal(model.project(p, euler, m[3]), z[3:4])  # one point, as (1, 4)
+
+
 def test_analytic_jacobians_equal_finite_differences(rig):
     model = StereoObservationModel.from_rig(rig)
     p, euler, m = _scene(10)

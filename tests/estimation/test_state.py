@@ -68,6 +68,9 @@ def test_block_predict_equals_the_dense_transition():
 def test_removing_landmarks_is_marginalisation_and_storage_grows():
     st = _state()
     P0, x0 = st.P.copy(), st.x.copy()
+    kept = st.remove_landmarks(np.zeros(0, dtype=np.int64))  # nothing leaves
+    assert list(kept) == [0, 1, 2, 3, 4] and st.n == len(x0)
+    np.testing.assert_array_equal(st.P, P0)
     kept = st.remove_landmarks(np.array([1, 3]))
     assert list(kept) == [0, 2, 4]
     idx = np.r_[np.arange(18), 18 + np.r_[0:3, 6:9, 12:15]]
