@@ -378,7 +378,7 @@ class JointState:
         idx = np.flatnonzero(keep_rows)
         new_row = np.cumsum(keep_rows) - 1  # old row -> new row, for the rows kept
         new_anchor = np.cumsum(used) - 1
-        x, P = self.x[idx], self.P[idx][:, idx]  # rows, then columns: 2-3x np.ix_'s speed
+        x, P = self.x[idx], self.P[np.ix_(idx, idx)]
         if self._N is not None:
             self._N[: len(idx)] = self._N[idx]
         self._n = len(idx)
