@@ -50,21 +50,25 @@ update (with the bound on a few states), which keeps large freed temporaries fro
 to the OS and being faulted in again at every update (BENCHMARKS.md, "Fuse: speed"). numpy
 evaluates `V @ V.T` and `G.T @ G` with syrk, whose result is exactly symmetric, so the
 in-place NH-infinity update needs no symmetrisation pass; it calls syrk itself, with
-beta = 1, on one copy of P (P - V V^T, then + G^T G, on one triangle) and mirrors the
-triangle into P once, instead of forming both products apart and adding them: the same
-numbers, two passes over n x n fewer. Both variants give the pure functions' results bit
-for bit here (the tests allow 1e-12 of the covariance's scale). The EKF's Joseph form keeps its two
-n x n x m products and its symmetrisation pass (in the two contiguous work buffers, so that
-the state's strided P is read and written once): about twice the NH-infinity update's
-arithmetic.
+beta = 1, on P's upper triangle where it lies (P - V V^T, then + G^T G; P is a view of the
+state's storage, whose rows are longer than n, so BLAS is called with that leading
+dimension: `_syrk_upper`) and mirrors the triangle once, instead of forming both products
+apart and adding them: the same numbers, three passes over n x n fewer. Both variants give
+the pure functions' results bit for bit here (the tests allow 1e-12 of the covariance's
+scale). The EKF's Joseph form keeps its two n x n x m products and its symmetrisation pass
+(in the two contiguous work buffers, so that the state's strided P is read and written
+once): about twice the NH-infinity update's arithmetic.
 """
 
 from __future__ import annotations
 
+import ctypes
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
-from scipy.linalg import blas, solve_triangular
+from scipy.linalg import cython_blas, solve_triangular
 
 from cvslam_cli.records.arrays import F64, I64
 
@@ -333,24 +337,24 @@ def hinf_update_inplace(
     """`hinf_update` written into x (n,) and P (n, n) in place; `work` (2, n, n) is scratch
     space (two C-contiguous (n, n) buffers) that must not overlap them; `blocks`: H's known
     zeros (`BlockRows`). Same expressions in the same order as `hinf_update`, evaluated as
-    two symmetric rank updates of one copy of P (BLAS syrk with beta = 1 on work[0]'s upper
-    triangle: P_ekf = P - V V^T, the existence check on the bounded rows of P_ekf, then
-    P_ekf + G^T G), mirrored into P at the end: one pass over P to read it and one to write
-    it, where forming V V^T and G^T G apart costs two more. The numbers are those of numpy's
+    two symmetric rank updates of P's upper triangle where it lies (BLAS syrk with beta = 1:
+    P_ekf = P - V V^T, the existence check on the bounded rows of P_ekf, then P_ekf + G^T G;
+    work[1] holds all of P_ekf when every state is bounded), mirrored into P's lower triangle
+    at the end: one pass over P, where a copy of P and forming V V^T and G^T G apart would
+    cost three more. The numbers are those of numpy's
     V @ V.T (syrk as well) and of the subtraction and addition, bit for bit; P stays exactly
     symmetric. The result holds x and P themselves."""
     _check_inplace(x, P, work)
     _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols, blocks)
-    acc = work[0]  # acc.T is P's F-contiguous copy, the form syrk updates in place
-    np.copyto(acc, P)
-    _syrk_into(acc, V, -1.0)  # upper triangle of acc: P_ekf = P - V V^T
+    _syrk_upper(P, V, -1.0)  # P's upper triangle: P_ekf = P - V V^T
     if bounded is None:  # every state bounded: L = I, P_ekf L^T is all of P_ekf
         P_ekf_L = work[1]
-        _mirror_upper(acc, P_ekf_L)
+        np.copyto(P_ekf_L, P)
+        _mirror_upper(P_ekf_L)
         P_ekf_LL = P_ekf_L
     else:
         idx = np.asarray(bounded, dtype=np.int64)
-        P_ekf_L = _upper_rows(acc, idx).T  # P_ekf L^T (n, l)
+        P_ekf_L = _upper_rows(P, idx).T  # P_ekf L^T (n, l)
         P_ekf_LL = P_ekf_L[idx]
     P_ekf_LL = 0.5 * (P_ekf_LL + P_ekf_LL.T)
     gamma, raised = _existence_check(P_ekf_LL, gamma, margin)
@@ -358,19 +362,42 @@ def hinf_update_inplace(
     if np.isfinite(gamma):
         B = np.linalg.cholesky(gamma**2 * np.eye(len(P_ekf_LL)) - P_ekf_LL)
         G = _solve_lower(B, P_ekf_L.T)  # (l, n)
-        _syrk_into(acc, G.T, 1.0)  # P_ekf + G^T G
-    _mirror_upper(acc, P)
+        _syrk_upper(P, G.T, 1.0)  # P_ekf + G^T G
+    _mirror_upper(P)
     return UpdateResult(x, P, nis, gamma, raised)
 
 
-def _syrk_into(acc: F64, A: F64, alpha: float) -> None:
-    """acc's upper triangle += alpha A A^T (A (n, k)), in place (BLAS dsyrk on acc.T, the
-    lower triangle of the F-contiguous transpose; acc (n, n) C-contiguous and symmetric
-    before the first call)."""
-    out = blas.dsyrk(alpha, np.asfortranarray(A), beta=1.0, c=acc.T, trans=0, lower=1,
-                     overwrite_c=1)  # fmt: skip
-    if not np.shares_memory(out, acc):  # f2py copied: acc was not as required
-        raise ValueError("syrk did not update the work buffer in place")
+@cache
+def _dsyrk() -> Callable[..., None]:
+    """BLAS dsyrk as scipy exports it for Cython (`scipy.linalg.cython_blas`, the library
+    `scipy.linalg.blas` wraps), called through ctypes: the f2py wrapper accepts only a
+    contiguous C, and P is a view of the state's larger storage."""
+    api = ctypes.pythonapi
+    api.PyCapsule_GetName.restype = ctypes.c_char_p
+    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    capsule = cython_blas.__pyx_capi__["dsyrk"]
+    pointer = api.PyCapsule_GetPointer(capsule, api.PyCapsule_GetName(capsule))
+    i, d, a = ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_double), ctypes.c_void_p
+    c = ctypes.c_char_p
+    return ctypes.CFUNCTYPE(None, c, c, i, i, d, a, i, d, a, i)(pointer)  # uplo .. ldc
+
+
+def _syrk_upper(P: F64, A: F64, alpha: float) -> None:
+    """P's upper triangle += alpha A A^T (A (n, k)), in place: BLAS dsyrk on the lower
+    triangle of P^T, the column-major matrix whose leading dimension is P's row stride (P
+    (n, n) with contiguous rows; its lower triangle is left as it was)."""
+    n, k = A.shape
+    if P.shape != (n, n) or P.strides[1] != P.itemsize or P.dtype != np.float64:
+        raise ValueError(f"syrk: expected an (n, n) float64 view with contiguous rows, n = {n}")
+    A = np.asfortranarray(A, dtype=np.float64)
+    ref = ctypes.byref
+    _dsyrk()(
+        b"L", b"N", ref(ctypes.c_int(n)), ref(ctypes.c_int(k)), ref(ctypes.c_double(alpha)),
+        A.ctypes.data, ref(ctypes.c_int(max(n, 1))), ref(ctypes.c_double(1.0)), P.ctypes.data,
+        ref(ctypes.c_int(max(P.strides[0] // P.itemsize, 1))),
+    )  # fmt: skip
 
 
 def _upper_rows(acc: F64, rows: I64) -> F64:
@@ -387,21 +414,18 @@ _MIRROR_BLOCK = 64
 _STRICT_LOWER = np.tril(np.ones((_MIRROR_BLOCK, _MIRROR_BLOCK), dtype=bool), -1)
 
 
-def _mirror_upper(acc: F64, P: F64) -> None:
-    """P (n, n) = the symmetric matrix whose upper triangle acc holds, by blocks of 64 rows
-    (measured fastest of 64 / 128 / 256 at n = 544 and 914): the block's part right of its
-    diagonal block, its transpose below, and the diagonal block from its upper triangle
-    (copied whole, then its strict lower part from its transpose)."""
-    n = len(acc)
+def _mirror_upper(P: F64) -> None:
+    """P (n, n) made the symmetric matrix whose upper triangle it holds, in place, by blocks
+    of 64 rows (measured fastest of 64 / 128 / 256 at n = 544 and 914): the transpose of the
+    block's part right of its diagonal block below it, and the diagonal block's strict lower
+    part from its upper."""
+    n = len(P)
     for j0 in range(0, n, _MIRROR_BLOCK):
         j1 = min(n, j0 + _MIRROR_BLOCK)
-        right = acc[j0:j1, j1:]
-        P[j0:j1, j1:] = right
-        P[j1:, j0:j1] = right.T
-        D = acc[j0:j1, j0:j1]
-        P[j0:j1, j0:j1] = D
+        P[j1:, j0:j1] = P[j0:j1, j1:].T
+        D = P[j0:j1, j0:j1]
         b = j1 - j0
-        np.copyto(P[j0:j1, j0:j1], D.T, where=_STRICT_LOWER[:b, :b])
+        np.copyto(D, D.T.copy(), where=_STRICT_LOWER[:b, :b])
 
 
 def update_inplace(

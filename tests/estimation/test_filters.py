@@ -11,6 +11,8 @@ from cvslam_cli.estimation.filters import (
     FilterSettings,
     GammaPolicy,
     UpdateResult,
+    _mirror_upper,
+    _syrk_upper,
     ekf_update,
     ekf_update_inplace,
     hinf_update,
@@ -213,6 +215,30 @@ def test_in_place_update_rejects_a_work_buffer_that_overlaps_the_state():
         ekf_update_inplace(xv, P_in_flat, y, h, H, R, None, flat.reshape(2, n, n))
     with pytest.raises(ValueError, match="shape"):
         hinf_update_inplace(xv, Pv, y, h, H, R, 4.0, None, 0.1, None, work[0])
+
+
+def test_syrk_updates_the_upper_triangle_of_a_view_where_it_lies():
+    """The in-place update's rank-k step works on P inside the state's larger storage (rows
+    longer than n): the upper triangle becomes P - A A^T, the lower one and the storage
+    around P are left alone, and the mirror then makes it the symmetric result."""
+    _, P, *_ = _problem(n=37)
+    A = RNG.normal(size=(37, 5))
+    storage = RNG.normal(size=(45, 45))
+    view = storage[:37, :37]
+    view[:] = P
+    before = storage.copy()
+    _syrk_upper(view, A, -1.0)
+    iu = np.triu_indices(37)
+    expected = P - A @ A.T
+    np.testing.assert_allclose(view[iu], expected[iu], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(np.tril(view, -1), np.tril(P, -1))
+    np.testing.assert_array_equal(storage[37:], before[37:])
+    np.testing.assert_array_equal(storage[:, 37:], before[:, 37:])
+    _mirror_upper(view)
+    np.testing.assert_array_equal(view, view.T)
+    np.testing.assert_allclose(view, expected, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="contiguous rows"):
+        _syrk_upper(np.asfortranarray(P), A, -1.0)  # columns contiguous, not rows
 
 
 def test_noise_scaling_of_eq_13_14_applies_to_nh_infinity_only():
