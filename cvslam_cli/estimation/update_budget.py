@@ -4,8 +4,9 @@ A frame's update takes at most `fuse.map.max_updates_per_frame` of the landmarks
 associated (spread over the image, the longest-unseen first: `Slam._associate`), and new
 landmarks are mapped while fewer than `fuse.map.target_tracked` were updated
 (`NewLandmarks.wanted`). More landmarks a frame constrain the pose more and keep more of the
-map in view, at a cost: the update is O(n^2 m) in the state size n and the rows m (4 a
-landmark).
+map in view, at a cost: the update is O(n^2 m) in the state size n and the rows m (3 a
+landmark with a rectified rig, 4 otherwise), and every landmark tracked costs its share of
+association and mapping (BENCHMARKS.md, "Fuse: the same estimates in less time").
 
 `auto` (the default of both), by the motion models of the vehicles in one filter:
 AUTO_WITH_IMU (60) when every vehicle has an IMU, AUTO_WITHOUT_IMU (30) otherwise;
