@@ -341,9 +341,9 @@ def hinf_update_inplace(
     P_ekf = P - V V^T, the existence check on the bounded rows of P_ekf, then P_ekf + G^T G;
     work[1] holds all of P_ekf when every state is bounded), mirrored into P's lower triangle
     at the end: one pass over P, where a copy of P and forming V V^T and G^T G apart would
-    cost three more. The numbers are those of numpy's
-    V @ V.T (syrk as well) and of the subtraction and addition, bit for bit; P stays exactly
-    symmetric. The result holds x and P themselves."""
+    cost three more. The numbers are those of numpy's V @ V.T (syrk as well) and of the
+    subtraction and addition, bit for bit; P stays exactly symmetric. The result holds x and
+    P themselves."""
     _check_inplace(x, P, work)
     _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols, blocks)
     _syrk_upper(P, V, -1.0)  # P's upper triangle: P_ekf = P - V V^T
