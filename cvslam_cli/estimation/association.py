@@ -12,9 +12,9 @@ chi2_4(p). Among its candidates a landmark takes the one with the smallest descr
 distance D1, if D1 < ratio * D2 (second smallest in the window) and D1 < max_distance; a match
 claimed by several landmarks goes to the smallest D1. Everything is vectorised over
 landmarks x matches (a frame has ~100 landmarks in view and a few hundred matches); the full
-d2 is computed only for the landmarks and matches that meet inside some window's bounding box
-(`_in_boxes`, a necessary condition of the gate): the same decisions at a fraction of the
-pairs.
+d2 is computed only for the pairs whose match lies inside its landmark's window's bounding
+box (`_in_boxes`, a necessary condition of the gate): the same decisions at a fraction of
+the pairs.
 
 Which landmarks are predicted at all (`visible_slots`): in front of the cameras, inside both
 images, and viewed from within the maximum angle of their mean viewing direction
@@ -206,14 +206,14 @@ def associate(
     if k == 0 or M == 0:
         e = np.zeros(0, dtype=np.int64)
         return Association(e, e, np.zeros(0), np.zeros(0), np.zeros(M, dtype=bool))
-    # only the landmarks and matches that meet inside some window's bounding box
-    box = _in_boxes(pred, z_obs, gate_chi2)
-    lm_in, obs_in = np.flatnonzero(box.any(axis=1)), np.flatnonzero(box.any(axis=0))
+    # only the pairs inside their landmark's window's bounding box
+    lm_at, obs_at = np.nonzero(_in_boxes(pred, z_obs, gate_chi2))
     d2 = np.full((k, M), np.inf)
-    if len(lm_in):
-        S_inv = np.linalg.inv(pred.S[lm_in])
-        diff = z_obs[None, obs_in, :] - pred.z[lm_in, None, :]  # (k', M', 4)
-        d2[np.ix_(lm_in, obs_in)] = np.sum((diff @ S_inv) * diff, axis=2)  # S_inv symmetric
+    if len(lm_at):
+        lm_in, at = np.unique(lm_at, return_inverse=True)
+        S_inv = np.linalg.inv(pred.S[lm_in])[at]  # (p, 4, 4), symmetric
+        diff = z_obs[obs_at] - pred.z[lm_at]  # (p, 4)
+        d2[lm_at, obs_at] = np.sum((diff[:, None, :] @ S_inv)[:, 0] * diff, axis=1)
     gated = d2 < gate_chi2
     near = gated.any(axis=0)
     rows = np.flatnonzero(gated.any(axis=1))
