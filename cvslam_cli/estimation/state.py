@@ -378,11 +378,10 @@ class JointState:
         idx = np.flatnonzero(keep_rows)
         new_row = np.cumsum(keep_rows) - 1  # old row -> new row, for the rows kept
         new_anchor = np.cumsum(used) - 1
-        x, P = self.x[idx], self.P[np.ix_(idx, idx)]
+        _compact(self._P, self._x, keep_rows)
         if self._N is not None:
             self._N[: len(idx)] = self._N[idx]
         self._n = len(idx)
-        self.x, self.P = x, P
         anchor_of = self._anchor_of[kept]
         has = anchor_of >= 0
         anchor_of[has] = new_anchor[anchor_of[has]]
@@ -495,3 +494,20 @@ class JointState:
             settings, gamma, self.x, self.P, y, h, H, cols, R,
             self.bounded_states(settings, vehicles, cols), self._work_view(), blocks,
         )  # fmt: skip
+
+
+def _compact(P: F64, x: F64, keep: np.ndarray) -> None:
+    """The kept states moved to the front of their storage, in place: x[:k] = x[keep] and
+    P[:k, :k] = P[keep][:, keep] (k kept of n = len(keep)), by the blocks that runs of kept
+    rows and columns make. Copied in row-major order of the blocks, each one's destination
+    up and left of its source, no block overwrites one not yet read (a block overlapping its
+    own source is buffered by numpy); the same numbers as the gather, which a state missing
+    a few scattered rows would build from n^2 single reads and then copy back."""
+    edges = np.diff(np.concatenate([[0], keep.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()
+    to = np.cumsum([0] + [e - s for s, e in zip(starts, ends, strict=True)]).tolist()
+    runs = list(zip(starts, ends, to[:-1], strict=True))  # (first, end, new first)
+    for s0, e0, i0 in runs:
+        x[i0 : i0 + e0 - s0] = x[s0:e0]
+        for s1, e1, j0 in runs:
+            P[i0 : i0 + e0 - s0, j0 : j0 + e1 - s1] = P[s0:e0, s1:e1]

@@ -17,7 +17,7 @@ from cvslam_cli.estimation.filters import (
 )
 from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import InsModel, OdometryModel
-from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.state import JointState, _compact
 
 RNG = np.random.default_rng(11)
 
@@ -82,6 +82,29 @@ def test_removing_landmarks_is_marginalisation_and_storage_grows():
         st.add_landmarks(np.zeros((3, 3)), np.eye(9), np.zeros((9, n)))
     assert st.n_landmarks == 123 and st.P.shape == (st.n, st.n)
     np.testing.assert_array_equal(st.P[:18, :18], P0[:18, :18])
+
+
+def test_in_place_compaction_equals_the_gather():
+    """`_compact` moves the kept rows and columns to the front of a larger storage in place:
+    the same numbers as the gather for masks that drop the first row, the last, single rows
+    between long runs and long runs between single rows; the storage beyond is untouched."""
+    for keep in (
+        np.r_[False, np.ones(40, bool)],
+        np.r_[np.ones(40, bool), False],
+        RNG.random(41) < 0.9,
+        RNG.random(41) < 0.3,
+        np.tile([True, True, False], 14)[:41],
+    ):
+        store = RNG.normal(size=(50, 50))
+        x_store = RNG.normal(size=50)
+        P, x = store[:41, :41].copy(), x_store[:41].copy()
+        beyond, x_beyond = store[:, 41:].copy(), x_store[41:].copy()
+        _compact(store, x_store, keep)
+        k = int(keep.sum())
+        np.testing.assert_array_equal(store[:k, :k], P[np.ix_(keep, keep)])
+        np.testing.assert_array_equal(x_store[:k], x[keep])
+        np.testing.assert_array_equal(store[:, 41:], beyond)
+        np.testing.assert_array_equal(x_store[41:], x_beyond)
 
 
 def _reference(
