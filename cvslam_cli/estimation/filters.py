@@ -69,6 +69,7 @@ from functools import cache
 
 import numpy as np
 from scipy.linalg import cython_blas, solve_triangular
+from scipy.linalg.blas import dtrsm
 
 from cvslam_cli.records.arrays import F64, I64
 
@@ -172,6 +173,23 @@ class BlockRows:
             HP[m:] = H[m:, c:] @ P[cols[c:]]
         return HP
 
+    def HPHt(self, HP: F64, H: F64, cols: I64) -> F64:
+        """H P H^T (m, m) from HP = H P (m, n) (`HP`) and H's non-zero blocks only: the
+        blocks' rows from HP's shared columns times H_v^T and, per block j, HP's columns
+        cols_j times H_j^T (m x width x rows each); the tail's rows from its own columns.
+        In place of the dense m x len(cols) x m product, equal to it up to rounding."""
+        a, r, d, t = self.shared, self.rows, self.width, self.tail
+        k = (len(cols) - a - t) // d
+        m, c, M = k * r, len(cols) - t, len(H)
+        S = np.empty((M, M))
+        S[:, :m] = HP[:, cols[:a]] @ H[:m, :a].T
+        blocks = H[:m, a:c].reshape(k, r, k, d)[np.arange(k), :, np.arange(k), :]  # (k, r, d)
+        HP_b = HP[:, cols[a:c]].reshape(M, k, d).transpose(1, 0, 2)  # (k, M, d)
+        S[:, :m] += (HP_b @ blocks.transpose(0, 2, 1)).transpose(1, 0, 2).reshape(M, m)
+        if m < M:
+            S[:, m:] = HP[:, cols[c:]] @ H[m:, c:].T
+        return S
+
 
 def _solve_lower(C: F64, B: F64) -> F64:
     """C^-1 B for C lower triangular (a Cholesky factor, finite by construction) and B (m, n)
@@ -181,29 +199,47 @@ def _solve_lower(C: F64, B: F64) -> F64:
     return solve_triangular(C, B, lower=True, check_finite=False)
 
 
+def _solve_right_lower_t(C: F64, B: F64, overwrite: bool) -> F64:
+    """B C^-T (n, m) for C (m, m) lower triangular (a Cholesky factor, finite by
+    construction) and B (n, m): BLAS trsm from the right, column-major; with `overwrite`
+    and B column-major (P H^T as `_whitened` forms it) in B itself, else in a copy.
+    Solving from the left (C^-1 B^T) would copy B^T into column-major order first."""
+    return dtrsm(1.0, C, B, side=1, lower=1, trans_a=1, overwrite_b=int(overwrite))
+
+
 def _whitened(
-    P: F64, H: F64, R: F64, y: F64, h: F64, cols: I64 | None, blocks: BlockRows | None = None
-) -> tuple[F64, F64, F64, F64, F64, float]:
+    P: F64,
+    H: F64,
+    R: F64,
+    y: F64,
+    h: F64,
+    cols: I64 | None,
+    blocks: BlockRows | None = None,
+    keep_PHt: bool = True,
+) -> tuple[F64 | None, F64, F64, F64, F64, float]:
     """P H^T (n, m), S = H P H^T + R and its Cholesky factor C (lower), V = P H^T C^-T,
     w = C^-1 (y - h), NIS = |w|^2. H may touch only the state columns `cols` (then H is
     (m, len(cols)) and P H^T costs n * len(cols) * m). P is a covariance, exactly
     symmetric: with `cols`, P[:, cols] is read as P[cols].T, from P's rows (one contiguous
-    copy each; P[:, cols] reads len(cols) scattered numbers from every row): the same
-    numbers in the same product, P H^T bit for bit. `blocks`: H's known zeros
-    (`BlockRows`), skipped in P H^T."""
+    copy each; P[:, cols] reads len(cols) scattered numbers from every row). `blocks`: H's
+    known zeros (`BlockRows`), skipped in P H^T and in S. V is solved from the right, in
+    the column-major P H^T itself (`_solve_right_lower_t`: no copy), and comes back
+    column-major, as the rank-k update reads it; without `keep_PHt` that overwrites P H^T
+    (None is returned for it)."""
     if cols is None:
         PHt = P @ H.T
         S = H @ PHt + R
     elif blocks is not None:
-        PHt = blocks.HP(P, H, cols).T
-        S = H @ PHt[cols] + R
+        HP = blocks.HP(P, H, cols)
+        PHt = HP.T
+        S = blocks.HPHt(HP, H, cols) + R
     else:
         PHt = P[cols].T @ H.T  # P[cols].T: the same (n, len(cols)) numbers as P[:, cols]
         S = H @ PHt[cols] + R
     C = np.linalg.cholesky(0.5 * (S + S.T))
-    V = _solve_lower(C, PHt.T).T  # (n, m)
+    V = _solve_right_lower_t(C, PHt, overwrite=not keep_PHt)  # (n, m)
     w = solve_triangular(C, y - h, lower=True)
-    return PHt, S, C, V, w, float(w @ w)
+    return (PHt if keep_PHt else None), S, C, V, w, float(w @ w)
 
 
 def ekf_update(
@@ -345,7 +381,7 @@ def hinf_update_inplace(
     subtraction and addition, bit for bit; P stays exactly symmetric. The result holds x and
     P themselves."""
     _check_inplace(x, P, work)
-    _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols, blocks)
+    _, _, _, V, w, nis = _whitened(P, H, R_hat, y, h, cols, blocks, keep_PHt=False)
     _syrk_upper(P, V, -1.0)  # P's upper triangle: P_ekf = P - V V^T
     if bounded is None:  # every state bounded: L = I, P_ekf L^T is all of P_ekf
         P_ekf_L = work[1]

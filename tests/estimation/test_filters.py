@@ -12,6 +12,7 @@ from cvslam_cli.estimation.filters import (
     GammaPolicy,
     UpdateResult,
     _mirror_upper,
+    _solve_right_lower_t,
     _syrk_upper,
     ekf_update,
     ekf_update_inplace,
@@ -131,7 +132,10 @@ def test_block_rows_give_the_dense_update():
     for j in range(k):
         H[r * j : r * j + r, nv + d * j : nv + d * j + d] = Hb[j]
     blocks = BlockRows(nv, r, d)
-    np.testing.assert_allclose(blocks.HP(P, H, cols), H @ P[cols], rtol=0, atol=1e-13)
+    HP = blocks.HP(P, H, cols)
+    np.testing.assert_allclose(HP, H @ P[cols], rtol=0, atol=1e-13)
+    S = H @ P[np.ix_(cols, cols)] @ H.T
+    np.testing.assert_allclose(blocks.HPHt(HP, H, cols), S, rtol=0, atol=1e-12)
     bounded = np.arange(nv)
     for with_blocks in (None, blocks):
         xv, Pv, work = _storage(x, P)
@@ -161,6 +165,23 @@ def test_block_rows_with_a_tail_give_the_dense_product():
     H[k * r :, nv + k * d :] = RNG.normal(size=(mt, t))
     got = BlockRows(nv, r, d, t).HP(P, H, cols)
     np.testing.assert_allclose(got, H @ P[cols], rtol=0, atol=1e-13)
+    S = H @ P[np.ix_(cols, cols)] @ H.T
+    np.testing.assert_allclose(BlockRows(nv, r, d, t).HPHt(got, H, cols), S, atol=1e-12)
+
+
+def test_the_right_side_solve_is_the_left_sides_transpose_and_writes_only_when_asked():
+    """V = B C^-T from the right (`_whitened`'s V = P H^T C^-T) equals (C^-1 B^T)^T; with
+    `overwrite` a column-major B holds the result, without it B is left as it was."""
+    _, P, _, _, H, _ = _problem(n=30, m=8)
+    C = np.linalg.cholesky(H @ P @ H.T + np.eye(8))
+    B = np.asfortranarray(P @ H.T)  # (n, m) column-major, as P H^T from H P's rows
+    ref = np.linalg.solve(C, B.T).T
+    before = B.copy()
+    np.testing.assert_allclose(_solve_right_lower_t(C, B, overwrite=False), ref, atol=1e-12)
+    np.testing.assert_array_equal(B, before)
+    V = _solve_right_lower_t(C, B, overwrite=True)
+    np.testing.assert_allclose(V, ref, atol=1e-12)
+    assert np.shares_memory(V, B) and V.flags.f_contiguous
 
 
 def test_joseph_form_equals_the_textbook_joseph_form():
