@@ -97,14 +97,15 @@ def euler_zyx_matrices(euler_rad: F64) -> tuple[F64, F64]:
     e = np.atleast_2d(np.asarray(euler_rad, dtype=float))
     k = len(e)
     c, s = np.cos(e), np.sin(e)
-    one, zero = np.ones(k), np.zeros(k)
-
-    def stack(rows: list[list[F64]]) -> F64:
-        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-    Rx = stack([[one, zero, zero], [zero, c[:, 0], -s[:, 0]], [zero, s[:, 0], c[:, 0]]])
-    Ry = stack([[c[:, 1], zero, s[:, 1]], [zero, one, zero], [-s[:, 1], zero, c[:, 1]]])
-    Rz = stack([[c[:, 2], -s[:, 2], zero], [s[:, 2], c[:, 2], zero], [zero, zero, one]])
+    # Rx, Ry, Rz (3, k, 3, 3): each a rotation about its axis a, [[c, -s], [s, c]] on the
+    # other two axes (i, j) in that order (Ry's, (z, x), gives its -s below the diagonal)
+    R = np.zeros((3, k, 3, 3))
+    for a, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
+        R[a, :, a, a] = 1.0
+        R[a, :, i, i] = R[a, :, j, j] = c[:, a]
+        R[a, :, i, j] = -s[:, a]
+        R[a, :, j, i] = s[:, a]
+    Rx, Ry, Rz = R
     e1x = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
     e2x = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])
     e3x = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])
