@@ -1,5 +1,6 @@
 """Motion factors between consecutive keyframes of one vehicle, from the filter's motion
-model and the same motion samples (zero-order hold between samples, as the filter steps):
+model and the same motion pieces (each driven by the samples at its midpoint, as the filter
+steps: `motion_segments`):
 
 - IMU (`InsModel`): GTSAM's combined preintegration (Forster et al.), pose, nav-frame
   velocity and IMU biases of both keyframes, with the model's white-noise densities and

@@ -183,8 +183,9 @@ def test_rounds_remove_wrong_observations_and_beat_the_filters_associations(case
           f"{e_reassociated:.3f} m")  # fmt: skip
     # 0.205 -> 0.130 m while the filter's initial velocity was the forward difference of the
     # ground truth (half a sample late); from the exact start its own observations give
-    # 0.073 m, and re-association 0.065
-    assert e_reassociated < 0.95 * e_filter_obs
+    # 0.073 m, and re-association 0.065; since the IMU's pieces are driven by the samples at
+    # their midpoints (`motion_segments`), 0.074 -> 0.070 m
+    assert e_reassociated < 0.97 * e_filter_obs
 
 
 def test_guided_matching_rules_on_a_hand_made_frame():
