@@ -8,9 +8,9 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
 
 1. predict (eq. 1-2): v's motion model is run from its last time to t over its motion
    samples (IMU or odometry, each piece driven by the samples at its midpoint,
-   `motion_segments`; one step for the
-   constant-velocity model) and the joint covariance propagated on v's block only
-   (`JointState.predict`), with NH-infinity's scaled process noise (eq. 13);
+   `motion_segments`; one step for the constant-velocity model) and the joint covariance
+   propagated on v's block only (`JointState.predict`), with NH-infinity's scaled process
+   noise (eq. 13);
 2. associate and classify: the landmarks in view are predicted into both images with their
    innovation covariances and matched to the frame's stereo matches (`association.py`);
    evicted landmarks that the unclaimed matches re-observe are brought back into the state

@@ -33,5 +33,7 @@ def motion_segments(stamps_ns: I64, inputs: F64, t0_ns: int, t1_ns: int) -> tupl
     a, b = max(lo - 1, 0), min(hi + 1, len(stamps_ns))
     t_s = (stamps_ns[a:b] - t0_ns) * 1e-9
     mid_s = 0.5 * (knots[:-1] + knots[1:] - 2 * t0_ns) * 1e-9
-    U = np.stack([np.interp(mid_s, t_s, inputs[a:b, j]) for j in range(inputs.shape[1])], axis=1)
-    return U.reshape(len(mid_s), inputs.shape[1]), np.diff(knots) * 1e-9
+    U = np.zeros((len(mid_s), inputs.shape[1]))
+    for j in range(inputs.shape[1]):
+        U[:, j] = np.interp(mid_s, t_s, inputs[a:b, j])
+    return U, np.diff(knots) * 1e-9
