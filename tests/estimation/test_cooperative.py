@@ -191,8 +191,8 @@ def test_uav2_ends_its_first_encounter_at_half_its_single_error(paper_run):
     reason="issue 15 goal 3 / issue 20, not met on this seed since stereo points are "
     "triangulated by least squares in pixels: uav1 cooperative 0.172 m RMSE against 0.152 m "
     "alone (1.13x; 0.165 / 0.155 before each IMU piece was driven by the samples at its "
-    "midpoint), worse at 25-35 s after uav2 re-activates uav1's 36 s old map; seeds 1-5: "
-    "below its single error on 4 of 5 (BENCHMARKS.md, 'Fuse: the IMU between its samples')",
+    "midpoint); seeds 1-5: below its single error on 4 of 5 (BENCHMARKS.md, 'Fuse: the IMU "
+    "between its samples')",
 )
 def test_cooperation_does_not_hurt_uav1(paper_run):
     """Issue 6's other half: UAV1, which maps first, is not made worse (RMSE within 5 %) by
