@@ -266,7 +266,7 @@ class AssociationConfig:
 
     pixel_sigma_px: Literal["auto"] | float = opt("auto", lo=0.0, lo_open=True)
     gate_probability: float = opt(0.999, lo=0.5, hi=1.0, lo_open=True)
-    consistency_probability: float = opt(0.99, lo=0.5, hi=1.0, lo_open=True)
+    consistency_probability: float = opt(0.999, lo=0.5, hi=1.0, lo_open=True)
     descriptor_ratio: float = opt(0.8, lo=0.0, hi=1.0, lo_open=True)
     other_vehicle_descriptor_ratio: float = opt(0.7, lo=0.0, hi=1.0, lo_open=True)
     other_vehicle_pixel_sigma_px: float = opt(0.0, lo=0.0)

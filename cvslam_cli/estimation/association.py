@@ -70,6 +70,32 @@ class LandmarkPrediction:
 
 
 @dataclass(frozen=True, eq=False)
+class LandmarkErrors:
+    """How k landmarks' errors (over their d columns in the state) relate to the observing
+    vehicle's (n_v states): dm_j = G_j dx_v + e_j with G (k, d, n_v) = P_mv P_vv^-1 and e_j
+    independent of dx_v, of covariance cov (k, d, d) = P_mm - P_mv P_vv^-1 P_vm (the
+    landmark's covariance given the vehicle's state). Out of the state (no cross-covariance
+    with the vehicle), G = 0 and cov the marginal (`independent`)."""
+
+    G: F64
+    cov: F64
+
+    @staticmethod
+    def given_vehicle(P_vv: F64, P_vm: F64, P_mm: F64) -> LandmarkErrors:
+        """From the blocks P_vv (n_v, n_v), P_vm (k, n_v, d), P_mm (k, d, d)."""
+        k, n_v, d = P_vm.shape
+        X = np.linalg.solve(P_vv, P_vm.transpose(1, 0, 2).reshape(n_v, k * d))  # P_vv^-1 P_vm
+        G = X.reshape(n_v, k, d).transpose(1, 2, 0)
+        cov = P_mm - G @ P_vm
+        return LandmarkErrors(G, 0.5 * (cov + np.swapaxes(cov, 1, 2)))
+
+    @staticmethod
+    def independent(cov: F64, n_v: int) -> LandmarkErrors:
+        """Landmarks of covariance cov (k, d, d) uncorrelated with the vehicle's n_v states."""
+        return LandmarkErrors(np.zeros((len(cov), cov.shape[1], n_v)), cov)
+
+
+@dataclass(frozen=True, eq=False)
 class Association:
     """a accepted pairs: `pred_index` (a,) rows of the prediction, `match_index` (a,) rows of
     the frame's matches, `d2` (a,) Mahalanobis distances, `descriptor_distance` (a,);
@@ -262,7 +288,7 @@ def pose_consistent(
     rows: I64,
     z_obs: F64,
     P_vv: F64,
-    P_mm: F64,
+    errors: LandmarkErrors,
     R: F64,
     gate_chi2: float,
     iterations: int = 3,
@@ -271,20 +297,25 @@ def pose_consistent(
     common vehicle correction. Individually gated innovations can still be wrong matches:
     the windows are wide while the pose is uncertain, and a repetitive texture offers a
     look-alike inside them. The innovations of right matches are explained by one small
-    correction dx of the vehicle state, nu_j = H_v,j dx + (landmark and pixel noise with
-    covariance W_j^-1 = H_m,j P_mm,j H_m,j^T + R); dx is the weighted least-squares solution
-    with the prior P_vv, and a match whose residual nu_j - H_v,j dx fails the chi-square gate
-    is dropped, re-solving without it (`iterations` times). P_mm (a, 3, 3); R (4, 4), times
-    the prediction's `noise_scale` where it has one."""
+    correction dx of the vehicle state: with the landmarks' errors dm_j = G_j dx + e_j
+    (`errors`, rows `rows`: the part that follows the vehicle's error and the rest),
+    nu_j = (H_v,j + H_m,j G_j) dx + (landmark and pixel noise with covariance W_j^-1 =
+    H_m,j C_j H_m,j^T + R); dx is the weighted least-squares solution with the prior P_vv,
+    and a match whose residual fails the chi-square gate is dropped, re-solving without it
+    (`iterations` times). A landmark mapped from this vehicle's pose shares most of its
+    error: its own rest C_j is its triangulation's, not the pose's uncertainty it inherited,
+    so a look-alike several pixels off stands out even while the pose is uncertain. R (4, 4),
+    times the prediction's `noise_scale` where it has one."""
     a = len(rows)
     keep = np.ones(a, dtype=bool)
     if a == 0:
         return keep
-    H_v = pred.H_v[rows]
     H_m = pred.H_m[rows]
+    H_v = pred.H_v[rows] + H_m @ errors.G[rows]
     nu = z_obs - pred.z[rows]
     scale = None if pred.noise_scale is None else pred.noise_scale[rows]
-    W = np.linalg.inv(H_m @ P_mm @ np.swapaxes(H_m, 1, 2) + scaled_noise(R, scale))  # (a, 4, 4)
+    C = errors.cov[rows]
+    W = np.linalg.inv(H_m @ C @ np.swapaxes(H_m, 1, 2) + scaled_noise(R, scale))  # (a, 4, 4)
     HtW = np.swapaxes(H_v, 1, 2) @ W  # (a, n_v, 4)
     info_prior = np.linalg.inv(P_vv)
     for _ in range(iterations):
@@ -400,12 +431,12 @@ def predict_in_state(
     slots: I64,
     R_hat: F64,
     noise_scale: F64 | None = None,
-) -> tuple[LandmarkPrediction, F64]:
+) -> tuple[LandmarkPrediction, LandmarkErrors]:
     """The state's landmarks in `slots` predicted into vin's images from its pose, with
     their innovation covariances (R_hat (4, 4) the pixel noise as the filter scales it, times
-    `noise_scale` (k,) per landmark when given); also the covariances P_mm (k, d, d) of their
-    columns in the state (`JointState.landmark_columns`: what the prediction's H_m is the
-    Jacobian for)."""
+    `noise_scale` (k,) per landmark when given); also their errors' relation to the
+    vehicle's (`LandmarkErrors`, over their columns in the state, `JointState.
+    landmark_columns`: what the prediction's H_m is the Jacobian for)."""
     cols = state.landmark_columns(slots)  # (k, d)
     P = state.P
     P_vm = P[pose.index[:, None, None], cols[None, :, :]].transpose(1, 0, 2)
@@ -415,4 +446,4 @@ def predict_in_state(
         vin.obs, pose.p_nav_m, pose.euler_rad, pose.J, slots, m, pose.P_vv, P_vm, P_mm, R_hat, M,
         noise_scale,
     )  # fmt: skip
-    return pred, P_mm
+    return pred, LandmarkErrors.given_vehicle(pose.P_vv, P_vm, P_mm)

@@ -80,7 +80,7 @@ class Cooperation:
             return
         ids = self.book.slot_ids[slots[front]]
         scale = noise_scale(self.book, ids, other.index, s.other_vehicle_noise_ratio)
-        pred, P_mm = self.updater.predict(vin, pose, slots[front], scale)
+        pred, errors = self.updater.predict(vin, pose, slots[front], scale)
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2,
             s.other_vehicle_descriptor_ratio, s.max_descriptor_distance,
@@ -89,7 +89,7 @@ class Cooperation:
             return
         ok = pose_consistent(
             pred, assoc.pred_index, cand.z[assoc.match_index], pose.P_vv,
-            P_mm[assoc.pred_index], self.updater.R_pixel_hat, s.consistency_chi2,
+            errors, self.updater.R_pixel_hat, s.consistency_chi2,
         )  # fmt: skip
         a, rows = assoc.pred_index[ok], assoc.match_index[ok]
         k = len(a)

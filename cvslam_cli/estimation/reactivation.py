@@ -50,6 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cvslam_cli.estimation.association import (
+    LandmarkErrors,
     LandmarkPrediction,
     associate,
     descriptor_ratios,
@@ -157,7 +158,8 @@ class Reactivation:
             return none
         rows = idx[assoc.match_index]
         ok = pose_consistent(
-            pred, assoc.pred_index, frame.z[rows], pose.P_vv, C[assoc.pred_index],
+            pred, assoc.pred_index, frame.z[rows], pose.P_vv,
+            LandmarkErrors.independent(C, len(pose.index)),
             self.R_pixel_hat, s.consistency_chi2,
         )  # fmt: skip
         if ok.sum() < s.reactivation_min_landmarks:

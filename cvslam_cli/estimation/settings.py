@@ -51,7 +51,7 @@ class SlamSettings:
     filter: FilterSettings = field(default_factory=FilterSettings)
     pixel_sigma_px: float = 0.5
     gate_chi2: float = 18.47  # chi2 with 4 dof at 0.999
-    consistency_chi2: float = 13.28  # chi2 with 4 dof at 0.99
+    consistency_chi2: float = 18.47  # chi2 with 4 dof at 0.999
     descriptor_ratio: float = 0.8
     other_vehicle_descriptor_ratio: float = 0.7  # landmarks the vehicle has not seen yet
     # pixel noise of an observation of a landmark another vehicle has observed (0: as

@@ -317,7 +317,7 @@ class Slam:
         book = self.book
         ids_vis = book.slot_ids[visible]
         scale = noise_scale(book, ids_vis, run.index, s.other_vehicle_noise_ratio)
-        pred, P_mm = self.updater.predict(run.vin, pose, visible, scale)
+        pred, errors = self.updater.predict(run.vin, pose, visible, scale)
         ratio = descriptor_ratios(
             book, ids_vis, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio
         )
@@ -327,7 +327,7 @@ class Slam:
         )  # fmt: skip
         ok = pose_consistent(
             pred, assoc.pred_index, frame.z[assoc.match_index], pose.P_vv,
-            P_mm[assoc.pred_index], self.updater.R_pixel_hat, s.consistency_chi2,
+            errors, self.updater.R_pixel_hat, s.consistency_chi2,
         )  # fmt: skip
         out.rejected = int(np.sum(~ok))
         if not ok.any():

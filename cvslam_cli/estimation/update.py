@@ -25,7 +25,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cvslam_cli.estimation.association import LandmarkPrediction, predict_in_state
+from cvslam_cli.estimation.association import (
+    LandmarkErrors,
+    LandmarkPrediction,
+    predict_in_state,
+)
 from cvslam_cli.estimation.filters import BlockRows, FilterSettings, GammaPolicy, UpdateResult
 from cvslam_cli.estimation.gauge import constrain
 from cvslam_cli.estimation.observation import BEARING_ROWS, MEAN_V_ROWS, mean_v_rows
@@ -90,10 +94,11 @@ class VisualUpdater:
 
     def predict(
         self, vin: VehicleInput, pose: VehiclePose, slots: I64, noise_scale: F64 | None = None
-    ) -> tuple[LandmarkPrediction, F64]:
+    ) -> tuple[LandmarkPrediction, LandmarkErrors]:
         """The landmarks in `slots` predicted into vin's images from its `pose` (the state's
         now) with their innovation covariances (with R_hat, times `noise_scale` (k,) per
-        landmark when given: `association.noise_scale`); also P_mm (k, 3, 3)."""
+        landmark when given: `association.noise_scale`); also their errors' relation to the
+        vehicle's (`association.LandmarkErrors`)."""
         return predict_in_state(self.state, vin, pose, slots, self.R_pixel_hat, noise_scale)
 
     def update(

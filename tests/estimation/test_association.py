@@ -9,11 +9,13 @@ from cvslam_cli.estimation.association import (
     TYPE_1,
     TYPE_2,
     TYPE_3,
+    LandmarkErrors,
     LandmarkPrediction,
     _in_boxes,
     associate,
     classify,
     noise_scale,
+    pose_consistent,
     spread_order,
     unassociated,
 )
@@ -168,3 +170,63 @@ def test_noise_scale_flags_the_landmarks_another_vehicle_has_observed():
     assert ratio.other_vehicle_noise_ratio == 4.0
     assert SlamSettings(pixel_sigma_px=0.35).other_vehicle_noise_ratio == 1.0  # 0: off
     assert SlamSettings(other_vehicle_pixel_sigma_px=0.3).other_vehicle_noise_ratio == 1.0
+
+
+def test_landmark_errors_given_the_vehicle_are_the_schur_complement():
+    """G = P_mv P_vv^-1 and the rest's covariance P_mm - P_mv P_vv^-1 P_vm, per landmark, as
+    the dense conditional of the joint Gaussian gives them."""
+    n_v, k, d = 5, 4, 3
+    A = RNG.normal(size=(n_v + k * d, n_v + k * d))
+    P = A @ A.T + 0.1 * np.eye(n_v + k * d)
+    P_vv = P[:n_v, :n_v]
+    P_vm = np.stack([P[:n_v, n_v + j * d : n_v + (j + 1) * d] for j in range(k)])
+    P_mm = np.stack([P[n_v + j * d :, n_v + j * d :][:d, :d] for j in range(k)])
+    err = LandmarkErrors.given_vehicle(P_vv, P_vm, P_mm)
+    for j in range(k):
+        c = slice(n_v + j * d, n_v + (j + 1) * d)
+        G = P[c, :n_v] @ np.linalg.inv(P_vv)
+        np.testing.assert_allclose(err.G[j], G, atol=1e-10)
+        np.testing.assert_allclose(err.cov[j], P[c, c] - G @ P[:n_v, c], atol=1e-10)
+    alone = LandmarkErrors.independent(P_mm, n_v)
+    assert alone.G.shape == (k, d, n_v) and not alone.G.any()
+    np.testing.assert_array_equal(alone.cov, P_mm)
+
+
+def test_the_one_correction_test_knows_what_a_landmark_shares_with_the_vehicle():
+    """Landmarks mapped from the vehicle's pose carry its error (here 0.2 m, theirs 1 cm):
+    their innovations are small whatever that error, so a look-alike 6 px off stands out.
+    Taken as independent of the vehicle (their marginals of 0.2 m), it hides in the windows."""
+    rng = np.random.default_rng(5)
+    k, n_v = 8, 3
+    # a rectified pair (f 500 px, baseline 0.5 m) seeing points 8-12 m ahead: d(u_l, v_l,
+    # u_r, v_r) / d(point), 40-60 px per metre
+    f, b = 500.0, 0.5
+    X, Y, Z = rng.uniform(-3, 3, k), rng.uniform(-2, 2, k), rng.uniform(8, 12, k)
+    zero, one = np.zeros(k), np.ones(k)
+    H_m = (f / Z)[:, None, None] * np.stack(
+        [
+            np.stack([one, zero, -X / Z], axis=1),
+            np.stack([zero, one, -Y / Z], axis=1),
+            np.stack([one, zero, -(X - b) / Z], axis=1),
+            np.stack([zero, one, -Y / Z], axis=1),
+        ],
+        axis=1,
+    )
+    H_v = -H_m  # the pixels follow the landmark relative to the vehicle
+    P_vv = 0.2**2 * np.eye(3)
+    P_vm = np.broadcast_to(P_vv, (k, 3, 3)).copy()  # dm_j = dx + e_j
+    P_mm = P_vm + 0.01**2 * np.eye(3)
+    dx = rng.normal(0.0, 0.2, 3)
+    e = rng.normal(0.0, 0.01, (k, 3))
+    R = 0.5**2 * np.eye(4)
+    nu = (H_v @ dx) + np.einsum("kij,kj->ki", H_m, dx + e) + rng.normal(0.0, 0.5, (k, 4))
+    nu[3] += 6.0  # a look-alike, 6 px along the image's diagonal in both images
+    pred = LandmarkPrediction(np.arange(k), np.zeros((k, 4)), H_v, H_m, np.zeros((k, 4, 4)))
+    rows = np.arange(k)
+    chi2 = 18.47  # 4 dof, 0.999
+    shared = pose_consistent(
+        pred, rows, nu, P_vv, LandmarkErrors.given_vehicle(P_vv, P_vm, P_mm), R, chi2
+    )
+    assert shared.tolist() == [j != 3 for j in range(k)]
+    apart = pose_consistent(pred, rows, nu, P_vv, LandmarkErrors.independent(P_mm, n_v), R, chi2)
+    assert apart.all()
