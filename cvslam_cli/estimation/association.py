@@ -71,28 +71,29 @@ class LandmarkPrediction:
 
 @dataclass(frozen=True, eq=False)
 class LandmarkErrors:
-    """How k landmarks' errors (over their d columns in the state) relate to the observing
-    vehicle's (n_v states): dm_j = G_j dx_v + e_j with G (k, d, n_v) = P_mv P_vv^-1 and e_j
-    independent of dx_v, of covariance cov (k, d, d) = P_mm - P_mv P_vv^-1 P_vm (the
-    landmark's covariance given the vehicle's state). Out of the state (no cross-covariance
-    with the vehicle), G = 0 and cov the marginal (`independent`)."""
+    """k landmarks' covariance blocks (over their d columns in the state) with the observing
+    vehicle's n_v states: P_vm (k, n_v, d) and their own P_mm (k, d, d). A landmark's error
+    splits into the part that follows the vehicle's and the rest (`given_vehicle`); out of the
+    state (no cross-covariance with the vehicle, `independent`) it is all the rest."""
 
-    G: F64
-    cov: F64
+    P_vm: F64
+    P_mm: F64
+
+    def given_vehicle(self, P_vv: F64, rows: I64) -> tuple[F64, F64]:
+        """For the landmarks `rows` (a,): dm_j = G_j dx_v + e_j with G (a, d, n_v) =
+        P_mv P_vv^-1 and e_j independent of dx_v, of covariance (a, d, d) P_mm - P_mv P_vv^-1
+        P_vm (the landmark's covariance given the vehicle's state); (G, that covariance)."""
+        P_vm = self.P_vm[rows]
+        a, n_v, d = P_vm.shape
+        X = np.linalg.solve(P_vv, P_vm.transpose(1, 0, 2).reshape(n_v, a * d))  # P_vv^-1 P_vm
+        G = X.reshape(n_v, a, d).transpose(1, 2, 0)
+        cov = self.P_mm[rows] - G @ P_vm
+        return G, 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
     @staticmethod
-    def given_vehicle(P_vv: F64, P_vm: F64, P_mm: F64) -> LandmarkErrors:
-        """From the blocks P_vv (n_v, n_v), P_vm (k, n_v, d), P_mm (k, d, d)."""
-        k, n_v, d = P_vm.shape
-        X = np.linalg.solve(P_vv, P_vm.transpose(1, 0, 2).reshape(n_v, k * d))  # P_vv^-1 P_vm
-        G = X.reshape(n_v, k, d).transpose(1, 2, 0)
-        cov = P_mm - G @ P_vm
-        return LandmarkErrors(G, 0.5 * (cov + np.swapaxes(cov, 1, 2)))
-
-    @staticmethod
-    def independent(cov: F64, n_v: int) -> LandmarkErrors:
-        """Landmarks of covariance cov (k, d, d) uncorrelated with the vehicle's n_v states."""
-        return LandmarkErrors(np.zeros((len(cov), cov.shape[1], n_v)), cov)
+    def independent(P_mm: F64, n_v: int) -> LandmarkErrors:
+        """Landmarks of covariance P_mm (k, d, d) uncorrelated with the vehicle's n_v states."""
+        return LandmarkErrors(np.zeros((len(P_mm), n_v, P_mm.shape[1])), P_mm)
 
 
 @dataclass(frozen=True, eq=False)
@@ -298,7 +299,7 @@ def pose_consistent(
     the windows are wide while the pose is uncertain, and a repetitive texture offers a
     look-alike inside them. The innovations of right matches are explained by one small
     correction dx of the vehicle state: with the landmarks' errors dm_j = G_j dx + e_j
-    (`errors`, rows `rows`: the part that follows the vehicle's error and the rest),
+    (`errors.given_vehicle`: the part that follows the vehicle's error and the rest),
     nu_j = (H_v,j + H_m,j G_j) dx + (landmark and pixel noise with covariance W_j^-1 =
     H_m,j C_j H_m,j^T + R); dx is the weighted least-squares solution with the prior P_vv,
     and a match whose residual fails the chi-square gate is dropped, re-solving without it
@@ -310,11 +311,11 @@ def pose_consistent(
     keep = np.ones(a, dtype=bool)
     if a == 0:
         return keep
+    G, C = errors.given_vehicle(P_vv, rows)
     H_m = pred.H_m[rows]
-    H_v = pred.H_v[rows] + H_m @ errors.G[rows]
+    H_v = pred.H_v[rows] + H_m @ G
     nu = z_obs - pred.z[rows]
     scale = None if pred.noise_scale is None else pred.noise_scale[rows]
-    C = errors.cov[rows]
     W = np.linalg.inv(H_m @ C @ np.swapaxes(H_m, 1, 2) + scaled_noise(R, scale))  # (a, 4, 4)
     HtW = np.swapaxes(H_v, 1, 2) @ W  # (a, n_v, 4)
     info_prior = np.linalg.inv(P_vv)
@@ -434,9 +435,9 @@ def predict_in_state(
 ) -> tuple[LandmarkPrediction, LandmarkErrors]:
     """The state's landmarks in `slots` predicted into vin's images from its pose, with
     their innovation covariances (R_hat (4, 4) the pixel noise as the filter scales it, times
-    `noise_scale` (k,) per landmark when given); also their errors' relation to the
-    vehicle's (`LandmarkErrors`, over their columns in the state, `JointState.
-    landmark_columns`: what the prediction's H_m is the Jacobian for)."""
+    `noise_scale` (k,) per landmark when given); also their covariance blocks with the
+    vehicle (`LandmarkErrors`, over their columns in the state, `JointState.landmark_columns`:
+    what the prediction's H_m is the Jacobian for)."""
     cols = state.landmark_columns(slots)  # (k, d)
     P = state.P
     P_vm = P[pose.index[:, None, None], cols[None, :, :]].transpose(1, 0, 2)
@@ -446,4 +447,4 @@ def predict_in_state(
         vin.obs, pose.p_nav_m, pose.euler_rad, pose.J, slots, m, pose.P_vv, P_vm, P_mm, R_hat, M,
         noise_scale,
     )  # fmt: skip
-    return pred, LandmarkErrors.given_vehicle(pose.P_vv, P_vm, P_mm)
+    return pred, LandmarkErrors(P_vm, P_mm)

@@ -97,8 +97,8 @@ class VisualUpdater:
     ) -> tuple[LandmarkPrediction, LandmarkErrors]:
         """The landmarks in `slots` predicted into vin's images from its `pose` (the state's
         now) with their innovation covariances (with R_hat, times `noise_scale` (k,) per
-        landmark when given: `association.noise_scale`); also their errors' relation to the
-        vehicle's (`association.LandmarkErrors`)."""
+        landmark when given: `association.noise_scale`); also their covariance blocks with the
+        vehicle (`association.LandmarkErrors`)."""
         return predict_in_state(self.state, vin, pose, slots, self.R_pixel_hat, noise_scale)
 
     def update(

@@ -181,15 +181,15 @@ def test_landmark_errors_given_the_vehicle_are_the_schur_complement():
     P_vv = P[:n_v, :n_v]
     P_vm = np.stack([P[:n_v, n_v + j * d : n_v + (j + 1) * d] for j in range(k)])
     P_mm = np.stack([P[n_v + j * d :, n_v + j * d :][:d, :d] for j in range(k)])
-    err = LandmarkErrors.given_vehicle(P_vv, P_vm, P_mm)
+    G_all, cov_all = LandmarkErrors(P_vm, P_mm).given_vehicle(P_vv, np.arange(k))
     for j in range(k):
         c = slice(n_v + j * d, n_v + (j + 1) * d)
         G = P[c, :n_v] @ np.linalg.inv(P_vv)
-        np.testing.assert_allclose(err.G[j], G, atol=1e-10)
-        np.testing.assert_allclose(err.cov[j], P[c, c] - G @ P[:n_v, c], atol=1e-10)
-    alone = LandmarkErrors.independent(P_mm, n_v)
-    assert alone.G.shape == (k, d, n_v) and not alone.G.any()
-    np.testing.assert_array_equal(alone.cov, P_mm)
+        np.testing.assert_allclose(G_all[j], G, atol=1e-10)
+        np.testing.assert_allclose(cov_all[j], P[c, c] - G @ P[:n_v, c], atol=1e-10)
+    G_alone, cov_alone = LandmarkErrors.independent(P_mm, n_v).given_vehicle(P_vv, np.arange(k))
+    assert G_alone.shape == (k, d, n_v) and not G_alone.any()
+    np.testing.assert_array_equal(cov_alone, P_mm)
 
 
 def test_the_one_correction_test_knows_what_a_landmark_shares_with_the_vehicle():
@@ -224,9 +224,7 @@ def test_the_one_correction_test_knows_what_a_landmark_shares_with_the_vehicle()
     pred = LandmarkPrediction(np.arange(k), np.zeros((k, 4)), H_v, H_m, np.zeros((k, 4, 4)))
     rows = np.arange(k)
     chi2 = 18.47  # 4 dof, 0.999
-    shared = pose_consistent(
-        pred, rows, nu, P_vv, LandmarkErrors.given_vehicle(P_vv, P_vm, P_mm), R, chi2
-    )
+    shared = pose_consistent(pred, rows, nu, P_vv, LandmarkErrors(P_vm, P_mm), R, chi2)
     assert shared.tolist() == [j != 3 for j in range(k)]
     apart = pose_consistent(pred, rows, nu, P_vv, LandmarkErrors.independent(P_mm, n_v), R, chi2)
     assert apart.all()

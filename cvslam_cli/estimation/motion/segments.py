@@ -3,11 +3,9 @@
 An IMU (or odometry) sample is the rate at its stamp; between two samples the rate moves on.
 Each piece is therefore driven by the samples' linear interpolation at its midpoint (for a
 whole interval between two samples, their mean: OpenVINS's and VINS-Mono's discrete
-propagation), not by the sample at its start held over it. On the `uav2_paper` UAV of the 30 s
-mission (22 m/s, turn rates up to 0.5 rad/s), the exact IMU integrated by the INS model from
-the true start drifts 3.2 m and 0.05 deg in 29 s with the sample held, 0.75 m and 0.007 deg
-with the midpoint input (BENCHMARKS.md, "Fuse: the IMU between its samples"). The last piece
-before a frame reads the first sample after it: a filter over a recorded log has it.
+propagation), not by the sample at its start held over it, whose error grows with the turn
+rate (BENCHMARKS.md, "Fuse: the IMU between its samples"). The last piece before a frame
+reads the first sample after it: a filter over a recorded log has it.
 """
 
 from __future__ import annotations
