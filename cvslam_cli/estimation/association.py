@@ -10,11 +10,15 @@ and a stereo match z_i (u_l, v_l, u_r, v_r) is a candidate for landmark j only i
 landmark's innovation window, the chi-square gate d2_ij = (z_i - z_j)^T S_j^-1 (z_i - z_j) <
 chi2_4(p). Among its candidates a landmark takes the one with the smallest descriptor
 distance D1, if D1 < ratio * D2 (second smallest in the window) and D1 < max_distance; a match
-claimed by several landmarks goes to the smallest D1. Everything is vectorised over
-landmarks x matches (a frame has ~100 landmarks in view and a few hundred matches); the full
-d2 is computed only for the pairs whose match lies inside its landmark's window's bounding
-box (`_in_boxes`, a necessary condition of the gate): the same decisions at a fraction of
-the pairs.
+claimed by several landmarks goes to the smallest D1. For a landmark the observing vehicle
+has not seen yet (another vehicle's, `descriptor_tests`) D2 may be taken over every match of
+the frame instead (`frame_wide`): the gate of a view from elsewhere is wide, and a look-alike
+on a repeated texture (bricks, shelves, windows) is often alone in it, where a ratio test
+over the window has nothing to compare with; over the frame its twins make it fail.
+Everything is vectorised over landmarks x matches (a frame has ~100 landmarks in view and a
+few hundred matches); the full d2 is computed only for the pairs whose match lies inside its
+landmark's window's bounding box (`_in_boxes`, a necessary condition of the gate): the same
+decisions at a fraction of the pairs.
 
 Which landmarks are predicted at all (`visible_slots`): in front of the cameras, inside both
 images, and viewed from within the maximum angle of their mean viewing direction
@@ -175,15 +179,23 @@ def noise_scale(book: LandmarkBook, ids: I64, vehicle: int, ratio: float) -> F64
     return np.where(seen.any(axis=1), ratio, 1.0)
 
 
-def descriptor_ratios(
-    book: LandmarkBook, ids: I64, vehicle: int, own_ratio: float, other_ratio: float
-) -> F64:
-    """(k,) the descriptor ratio test's ratio for each landmark `ids` when `vehicle` observes
-    it: `other_ratio` (the stricter) for a landmark it never observed (another vehicle's, seen
-    from elsewhere), `own_ratio` for one it did (BENCHMARKS.md, "Another vehicle's landmarks,
-    a stricter descriptor test"). The frame's association and re-activation both use it."""
+def descriptor_tests(
+    book: LandmarkBook,
+    ids: I64,
+    vehicle: int,
+    own_ratio: float,
+    other_ratio: float,
+    other_over_frame: bool,
+) -> tuple[F64, NDArray[np.bool_]]:
+    """The descriptor ratio test of each landmark `ids` (k,) when `vehicle` observes it:
+    (ratio (k,), frame_wide (k,), `associate`'s arguments). A landmark it never observed
+    (another vehicle's, seen from elsewhere) gets `other_ratio` (the stricter) and, with
+    `other_over_frame`, its second-best distance over the whole frame; one it did,
+    `own_ratio` within its window (BENCHMARKS.md, "Another vehicle's landmarks, a stricter
+    descriptor test", "Fuse: another vehicle's landmark, distinct in the whole frame"). The
+    frame's association and re-activation both use it."""
     new_to_me = book.last_seen_ns[ids, vehicle] == NEVER
-    return np.where(new_to_me, other_ratio, own_ratio)
+    return np.where(new_to_me, other_ratio, own_ratio), new_to_me & other_over_frame
 
 
 def in_view(z: F64, depth_m: F64, size_px: NDArray[np.int64], margin_px: float = 0.0) -> NDArray:
@@ -226,9 +238,12 @@ def associate(
     gate_chi2: float,
     ratio: float | F64,
     max_distance: float,
+    frame_wide: bool | NDArray[np.bool_] = False,
 ) -> Association:
     """Match predicted landmarks (k) with a frame's stereo matches z_obs (M, 4) (module
-    docstring); `ratio`: the descriptor ratio, one for all or one per landmark (k,)."""
+    docstring); `ratio`: the descriptor ratio, one for all or one per landmark (k,);
+    `frame_wide`, for all or per landmark: the ratio test's second-best distance over all M
+    matches, not only those inside the landmark's window."""
     k, M = len(pred.z), len(z_obs)
     if k == 0 or M == 0:
         e = np.zeros(0, dtype=np.int64)
@@ -253,6 +268,11 @@ def associate(
     best = np.argmin(D, axis=1)
     best_d = D[np.arange(len(rows)), best]
     second_d = np.partition(D, 1, axis=1)[:, 1] if D.shape[1] >= 2 else np.full(len(rows), np.inf)
+    wide = np.broadcast_to(np.asarray(frame_wide, dtype=bool), (k,))[rows]
+    if wide.any():  # the second-best over every match (the window's are among them)
+        D_all = descriptor_distances(landmark_desc[rows[wide]], obs_desc)
+        D_all[np.arange(len(D_all)), cols[best[wide]]] = np.inf
+        second_d[wide] = D_all.min(axis=1)
     r = ratio if np.isscalar(ratio) else np.asarray(ratio)[rows].astype(second_d.dtype)
     ok = (best_d < max_distance) & (best_d < r * second_d)
     lm = rows[ok]

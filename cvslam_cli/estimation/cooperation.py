@@ -2,8 +2,10 @@
 
 - Joint initialisation (paper: a new landmark seen by several vehicles at once is
   initialised from all of them): new landmarks of one vehicle that another saw at about the
-  same time (among the unmatched points of its last frame, within `joint_init_window_ns`)
-  are updated with that observation right away, after the same test of one consistent
+  same time (among the unmatched points of its last frame, within `joint_init_window_ns`;
+  another vehicle's landmark, so `other_vehicle_descriptor_ratio` with its second-best over
+  all those points) are updated with that observation right away, after the same test of
+  one consistent
   correction of the observing vehicle's pose as its own frames' associations
   (`association.pose_consistent`). The other vehicle's state is still at that frame (a
   vehicle's state moves only at its own frames), so the update is exact.
@@ -84,6 +86,7 @@ class Cooperation:
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2,
             s.other_vehicle_descriptor_ratio, s.max_descriptor_distance,
+            s.other_vehicle_ratio_over_frame,
         )  # fmt: skip
         if not len(assoc.pred_index):
             return

@@ -16,8 +16,9 @@ is known to `MAX_REACTIVATION_STD_M`:
    landmark's inflated marginal (below), S = H_v P_vv H_v^T + H_m (k C) H_m^T + R_hat, and the
    chi-square gate with the descriptor ratio test against the frame's matches that no
    landmark in the state claims (`association.associate`; another vehicle's landmark that
-   this one never observed with `other_vehicle_descriptor_ratio`, as in the frame's own
-   association);
+   this one never observed with `other_vehicle_descriptor_ratio` and, with
+   `other_vehicle_ratio_over_frame`, its second-best over all those matches, as in the
+   frame's own association);
 3. the matches agree with one vehicle correction (`association.pose_consistent`), and at
    least `reactivation_min_landmarks` of them do (one look-alike in a window is no loop).
 Place recognition by appearance alone (when the pose is too uncertain for the windows) is
@@ -53,7 +54,7 @@ from cvslam_cli.estimation.association import (
     LandmarkErrors,
     LandmarkPrediction,
     associate,
-    descriptor_ratios,
+    descriptor_tests,
     in_view_rows,
     noise_scale,
     pose_consistent,
@@ -147,12 +148,13 @@ class Reactivation:
             + scaled_noise(self.R_pixel_hat, scale)
         )
         pred = LandmarkPrediction(ids, z, H_v, H_m, S, noise_scale=scale)
-        ratio = descriptor_ratios(
-            book, ids, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio
-        )
+        ratio, frame_wide = descriptor_tests(
+            book, ids, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio,
+            s.other_vehicle_ratio_over_frame,
+        )  # fmt: skip
         assoc = associate(
             pred, book.desc[ids], frame.z[idx], frame.desc[idx], s.gate_chi2, ratio,
-            s.max_descriptor_distance,
+            s.max_descriptor_distance, frame_wide,
         )  # fmt: skip
         if len(assoc.pred_index) < s.reactivation_min_landmarks:
             return none

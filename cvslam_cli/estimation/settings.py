@@ -54,6 +54,8 @@ class SlamSettings:
     consistency_chi2: float = 18.47  # chi2 with 4 dof at 0.999
     descriptor_ratio: float = 0.8
     other_vehicle_descriptor_ratio: float = 0.7  # landmarks the vehicle has not seen yet
+    # ... whose ratio test's second-best is over the whole frame (`association.associate`)
+    other_vehicle_ratio_over_frame: bool = True
     # pixel noise of an observation of a landmark another vehicle has observed (0: as
     # pixel_sigma_px; never below it): `association.noise_scale`
     other_vehicle_pixel_sigma_px: float = 0.0

@@ -58,7 +58,7 @@ from cvslam_cli.estimation.association import (
     absence_ns,
     associate,
     classify,
-    descriptor_ratios,
+    descriptor_tests,
     noise_scale,
     pose_consistent,
     record_observations,
@@ -318,12 +318,13 @@ class Slam:
         ids_vis = book.slot_ids[visible]
         scale = noise_scale(book, ids_vis, run.index, s.other_vehicle_noise_ratio)
         pred, errors = self.updater.predict(run.vin, pose, visible, scale)
-        ratio = descriptor_ratios(
-            book, ids_vis, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio
-        )
+        ratio, frame_wide = descriptor_tests(
+            book, ids_vis, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio,
+            s.other_vehicle_ratio_over_frame,
+        )  # fmt: skip
         assoc = associate(
             pred, book.desc[ids_vis], frame.z, frame.desc, s.gate_chi2, ratio,
-            s.max_descriptor_distance,
+            s.max_descriptor_distance, frame_wide,
         )  # fmt: skip
         ok = pose_consistent(
             pred, assoc.pred_index, frame.z[assoc.match_index], pose.P_vv,

@@ -532,6 +532,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         consistency_chi2=float(chi2.ppf(a.consistency_probability, 4)),
         descriptor_ratio=a.descriptor_ratio,
         other_vehicle_descriptor_ratio=a.other_vehicle_descriptor_ratio,
+        other_vehicle_ratio_over_frame=a.other_vehicle_ratio_over_frame,
         other_vehicle_pixel_sigma_px=a.other_vehicle_pixel_sigma_px,
         max_descriptor_distance=a.max_descriptor_distance,
         octave_bearing_variance=a.octave_bearing_variance,

@@ -14,6 +14,7 @@ from cvslam_cli.estimation.association import (
     _in_boxes,
     associate,
     classify,
+    descriptor_tests,
     noise_scale,
     pose_consistent,
     spread_order,
@@ -123,6 +124,50 @@ def test_the_ratio_test_per_landmark():
     assert list(both.pred_index) == [0, 1] and list(both.match_index) == [0, 2]
     assert len(none.pred_index) == 0
     assert list(mixed.pred_index) == [0] and list(mixed.match_index) == [0]
+
+
+def test_another_vehicles_landmark_must_be_distinct_in_the_whole_frame():
+    """A look-alike alone in its landmark's window, its twin (as close in descriptor) far
+    outside: the ratio test over the window has nothing to compare it with and takes it;
+    over the frame (`frame_wide`) it is refused. A distinct match is kept either way, and
+    `frame_wide` per landmark applies to its landmarks only."""
+    z = np.array([[100, 100, 90, 100], [300, 200, 280, 200.0]])
+    desc_lm = np.zeros((2, 128), dtype=np.uint8)
+    desc_lm[1, :] = 200
+    z_obs = np.array(
+        [[100.3, 100, 90.3, 100], [600, 300, 590, 300], [300.3, 200, 280.3, 200],
+         [50, 50, 40, 50.0]]
+    )  # fmt: skip
+    d = np.zeros((4, 128), dtype=np.uint8)
+    d[0, :16] = 30  # 120 from landmark 0, alone in its window ...
+    d[1, :16] = 31  # ... and its twin across the image: 124
+    d[2] = 200
+    d[2, :16] = 170  # 120 from landmark 1; nothing else within 200 of it
+    d[3, :] = 100
+    kw = {"gate_chi2": 18.47, "ratio": 0.7, "max_distance": 350.0}
+    window = associate(_prediction(z), desc_lm, z_obs, d, **kw)
+    frame = associate(_prediction(z), desc_lm, z_obs, d, frame_wide=True, **kw)
+    per = associate(_prediction(z), desc_lm, z_obs, d, frame_wide=np.array([False, True]), **kw)
+    assert list(window.pred_index) == [0, 1] and list(window.match_index) == [0, 2]
+    assert list(frame.pred_index) == [1] and list(frame.match_index) == [2]
+    assert list(per.pred_index) == [0, 1]
+    per = associate(_prediction(z), desc_lm, z_obs, d, frame_wide=np.array([True, False]), **kw)
+    assert list(per.pred_index) == [1]
+
+
+def test_descriptor_tests_ask_more_of_another_vehicles_landmark():
+    """The stricter ratio, and with `other_over_frame` the frame-wide second-best, for the
+    landmarks the observing vehicle never observed; its own keep the window's ratio."""
+    book = LandmarkBook(2)
+    view = np.tile([0.0, 0.0, -1.0], (3, 1))
+    ids = book.add(np.zeros((3, 128), dtype=np.uint8), 0, 5, np.full(3, -1), view)
+    book.last_seen_ns[ids[:2], 1] = 5  # vehicle 1 saw the first two
+    ratio, wide = descriptor_tests(book, ids, 1, 0.8, 0.7, True)
+    assert list(ratio) == [0.8, 0.8, 0.7] and list(wide) == [False, False, True]
+    ratio, wide = descriptor_tests(book, ids, 1, 0.8, 0.7, False)
+    assert list(ratio) == [0.8, 0.8, 0.7] and not wide.any()
+    ratio, wide = descriptor_tests(book, ids, 0, 0.8, 0.7, True)
+    assert list(ratio) == [0.8] * 3 and not wide.any()
 
 
 def test_spread_order_visits_every_cell_before_repeating():
