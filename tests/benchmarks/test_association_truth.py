@@ -19,15 +19,20 @@ vehicle ("cross"): how many, the median residual, the share wrong; the share of
 (landmark, vehicle) tracks of at least MIN_TRACK observations whose median residual is above
 OFFSET_PX (a keypoint that another view places persistently elsewhere: white noise does not
 do that); and the first cross-vehicle association of each (landmark, vehicle) pair, the
-share wrong. Written to `runs/benchmarks/association_truth.csv` (gitignored); asserted only
-that observations were checked and the figures are finite (DESIGN.md convention 8).
+share wrong; then per (observer, mapper) pair of vehicles the observations, their median
+residual and the share wrong (in a mixed team, which kinds of view fail each other). Written
+to `runs/benchmarks/association_truth.csv` and `association_truth_pairs.csv` (gitignored);
+asserted only that observations were checked and the figures are finite (DESIGN.md
+convention 8).
 
 Data: the layout of `test_fuse_images_seeds.py` under CVSLAM_IMAGES_SIM (simulated and
 extracted there unless kept). The true depth is simulated once more beside it (the same
 images, with depth: ~0.8 GB per seed), read at the matches into `true_depth.npz` and
 deleted; the cooperative filter runs in `run_truth` on the same features with the overrides
 CVSLAM_TRUTH_SET (";"-separated). Environment: CVSLAM_TRUTH_SCENARIO (default uav2_paper),
-CVSLAM_TRUTH_SEEDS (default "1"). Time: ~40 s per seed kept (its fuse), ~4 min from nothing.
+CVSLAM_TRUTH_SEEDS (default "1"), CVSLAM_IMAGES_SIMULATE_SET (the simulation's overrides, for
+both simulations, e.g. "duration_s=30"). Time: ~40 s per seed kept (its fuse), ~4 min from
+nothing.
 """
 
 from __future__ import annotations
@@ -53,6 +58,7 @@ from tests.benchmarks.test_fuse_images_seeds import (
     _overrides,
     _set_args,
     prepared,
+    simulate_sets,
 )
 from tests.benchmarks.test_keypoint_errors import _true_poses
 
@@ -69,7 +75,7 @@ def _true_depth(base: Path, scenario: str, seed: int, vehicles: list[str]) -> di
     if not cache.is_file():
         sim_depth = folder / "sim_depth"
         _cvslam("simulate", scenario, "-o", sim_depth, "--seed", seed, "--force",
-                "--set", "outputs.depth=true")  # fmt: skip
+                "--set", "outputs.depth=true", *simulate_sets())  # fmt: skip
         depths = {}
         for v in vehicles:
             fs, _ = load_features(folder / "run" / "features" / f"{v}.npz")
@@ -130,7 +136,8 @@ def _true_points(
 def _residuals(
     sim: Path, run: Path, t: ObservationTable, depths: dict[str, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(residual px (N,), cross (N,) bool: by another vehicle than the landmark's reference)."""
+    """(residual px (N,), reference (N,): the index in t.vehicles of each observation's
+    landmark's reference vehicle; by another vehicle, a cross-vehicle observation)."""
     points = np.full((len(t.stamp_ns), 3), np.nan)
     views = []  # per vehicle: (rows, model, frames, true p, true e)
     for i, v in enumerate(t.vehicles):
@@ -150,14 +157,31 @@ def _residuals(
     first = order[np.r_[True, lid_sorted[1:] != lid_sorted[:-1]]]
     ref = pd.Series(first, index=t.landmark_id[first])
     ref_row = ref.reindex(t.landmark_id).to_numpy()
-    cross = t.vehicle != t.vehicle[ref_row]
     residual = np.full(len(t.stamp_ns), np.nan)
     for k, model, frames, p, e in views:
         for _, g in frames:
             rows = k[g]
             zp = model.predict(p[g[0]], e[g[0]], points[ref_row[rows]])[0]
             residual[rows] = np.hypot(*(t.z_px[rows, :2] - zp[:, :2]).T)
-    return residual, cross
+    return residual, t.vehicle[ref_row]
+
+
+def _pairs(
+    seed: int, t: ObservationTable, residual: np.ndarray, reference: np.ndarray
+) -> list[dict]:
+    """Per (observer, mapper) pair of vehicles, the mapper the landmarks' reference: how
+    many observations, their median residual and the share wrong (a mixed team's kinds of
+    vehicle see one surface differently: which pairs fail)."""
+    ok = np.isfinite(residual)
+    names = np.asarray(t.vehicles)
+    frame = pd.DataFrame(
+        {"observer": names[t.vehicle[ok]], "mapper": names[reference[ok]], "r": residual[ok]}
+    )
+    return [
+        {"seed": seed, "observer": o, "mapper": m, "observations": len(g),
+         "median_px": float(g.r.median()), "wrong_share": float((g.r > WRONG_PX).mean())}
+        for (o, m), g in frame.groupby(["observer", "mapper"])
+    ]  # fmt: skip
 
 
 def _summary(seed: int, t: ObservationTable, residual: np.ndarray, cross: np.ndarray) -> list[dict]:
@@ -192,6 +216,7 @@ def test_associations_against_the_truth() -> None:
     sets = _overrides("CVSLAM_TRUTH_SET") or []
     kept = os.environ.get("CVSLAM_IMAGES_SIM")
     rows: list[dict] = []
+    pairs: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="cvslam_association_truth_") as tmp:
         base = Path(kept) if kept else Path(tmp)
         for seed in seeds:
@@ -200,11 +225,13 @@ def test_associations_against_the_truth() -> None:
             _cvslam("fuse", work, "--force", *_set_args(sets))
             t = load_observations(work / "fuse" / "observations.npz")
             depths = _true_depth(base, scenario, seed, list(t.vehicles))
-            residual, cross = _residuals(sim, work, t, depths)
-            rows += _summary(seed, t, residual, cross)
+            residual, reference = _residuals(sim, work, t, depths)
+            rows += _summary(seed, t, residual, t.vehicle != reference)
+            pairs += _pairs(seed, t, residual, reference)
     table = pd.DataFrame(rows)
     OUT.mkdir(parents=True, exist_ok=True)
     table.to_csv(OUT / "association_truth.csv", index=False)
+    pd.DataFrame(pairs).to_csv(OUT / "association_truth_pairs.csv", index=False)
     print(f"\n{scenario} with images, seeds {seeds}, overrides {sets or 'none'}: associations "
           f"against the true depth (wrong: > {WRONG_PX:g} px; offset track: median > "
           f"{OFFSET_PX:g} px over >= {MIN_TRACK} observations)")  # fmt: skip
@@ -216,5 +243,7 @@ def test_associations_against_the_truth() -> None:
         first_wrong = np.nansum(part.first_wrong_share * f) / max(f.sum(), 1)
         firsts = f"; first associations {int(f.sum())}, wrong {first_wrong:.2%}" if f.sum() else ""
         print(f"{kind}: {int(w.sum())} observations, wrong {wrong:.2%}{firsts}")
+    print("by observer and mapper (the landmark's reference vehicle):")
+    print(pd.DataFrame(pairs).round(4).to_string(index=False))
     assert table.observations.sum() > 0
     assert np.isfinite(table[["median_px", "wrong_share"]].to_numpy(float)).all()

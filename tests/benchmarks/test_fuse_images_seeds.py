@@ -35,6 +35,8 @@ Run time: ~2.5 min per seed on one core, most of it rendering and extraction; se
 CVSLAM_IMAGES_WORKERS (default 2) at a time, each command a process with one BLAS thread.
 CVSLAM_IMAGES_SIM names a folder that keeps the simulations and feature files between runs
 (the filters are always run again), so that comparing settings costs only the fuses.
+CVSLAM_IMAGES_SIMULATE_SET (";"-separated) overrides the simulation itself, e.g.
+"duration_s=30" for the 30 s `mixed_yard` missions of BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -65,12 +67,17 @@ def _cvslam(*args: object) -> None:
     assert r.returncode == 0, f"cvslam {' '.join(map(str, args))}: {r.stderr[-2000:]}"
 
 
+def simulate_sets() -> list[str]:
+    """`--set` arguments of CVSLAM_IMAGES_SIMULATE_SET, the simulation's own overrides."""
+    return _set_args(_overrides("CVSLAM_IMAGES_SIMULATE_SET") or [])
+
+
 def prepared(base: Path, scenario: str, seed: int) -> tuple[Path, Path]:
-    """(sim, run) of one seed under `base`: simulated with images and extracted unless kept
-    there already."""
+    """(sim, run) of one seed under `base`: simulated with images (and
+    CVSLAM_IMAGES_SIMULATE_SET) and extracted unless kept there already."""
     sim, run = base / f"{scenario}_{seed}" / "sim", base / f"{scenario}_{seed}" / "run"
     if not (sim / "scenario.yaml").is_file():
-        _cvslam("simulate", scenario, "-o", sim, "--seed", seed, "--force")
+        _cvslam("simulate", scenario, "-o", sim, "--seed", seed, "--force", *simulate_sets())
     if not (run / "features").is_dir():
         _cvslam("extract", *sorted(sim.glob("*.mcap")), "-o", run)
     return sim, run
