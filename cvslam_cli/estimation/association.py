@@ -13,7 +13,7 @@ distance D1, if D1 < ratio * D2 (second smallest in the window) and D1 < max_dis
 claimed by several landmarks goes to the smallest D1. For a landmark the observing vehicle
 has not seen yet (another vehicle's, `descriptor_tests`) D2 may be taken over every match of
 the frame instead (`frame_wide`): the gate of a view from elsewhere is wide, and a look-alike
-on a repeated texture (bricks, shelves, windows) is often alone in it, where a ratio test
+on a repeated texture (bricks, shelves, windows) can be alone in it, where a ratio test
 over the window has nothing to compare with; over the frame its twins make it fail.
 Everything is vectorised over landmarks x matches (a frame has ~100 landmarks in view and a
 few hundred matches); the full d2 is computed only for the pairs whose match lies inside its

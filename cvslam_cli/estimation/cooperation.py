@@ -5,8 +5,7 @@
   same time (among the unmatched points of its last frame, within `joint_init_window_ns`;
   another vehicle's landmark, so `other_vehicle_descriptor_ratio` with its second-best over
   all those points) are updated with that observation right away, after the same test of
-  one consistent
-  correction of the observing vehicle's pose as its own frames' associations
+  one consistent correction of the observing vehicle's pose as its own frames' associations
   (`association.pose_consistent`). The other vehicle's state is still at that frame (a
   vehicle's state moves only at its own frames), so the update is exact.
   `fuse.map.joint_initialisation` false turns it off (the slam loop does not call it).
