@@ -606,16 +606,24 @@ def _convert(tp: Any, raw: Any, path: str, source: str, meta: Mapping[str, Any])
     if tp in (int, float):
         lo, hi = meta.get("lo"), meta.get("hi")
         expected = _type_name(tp, meta)
-        ok = isinstance(raw, int) if tp is int else isinstance(raw, (int, float))
-        if not ok or isinstance(raw, bool) or (tp is float and not math.isfinite(raw)):
+        number = raw
+        if tp is float and isinstance(raw, str) and _EXPONENT_NUMBER_RE.fullmatch(raw.strip()):
+            number = float(raw)  # YAML 1.1 (PyYAML) reads 1e-9 as a string
+        ok = isinstance(number, int) if tp is int else isinstance(number, (int, float))
+        if not ok or isinstance(number, bool) or (tp is float and not math.isfinite(number)):
             _fail(source, path, expected.replace("a ", "a finite ", 1) if ok else expected, raw)
-        value = tp(raw)
+        value = tp(number)
         if (lo is not None and (value < lo or (meta.get("lo_open") and value == lo))) or (
             hi is not None and value > hi
         ):
             _fail(source, path, expected, raw)
         return value
     raise TypeError(f"config type {tp!r} at {path} is not supported")  # a bug in the schema
+
+
+# A number in exponent notation without a decimal point ("1e-9", "2E+3"): a float in
+# YAML 1.2 and in Python, a string to PyYAML's YAML 1.1 resolver.
+_EXPONENT_NUMBER_RE = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
 
 
 # The longest file name made of a name is `<name>_deadreckoning.tum.partial`; 255 bytes

@@ -135,6 +135,24 @@ def test_bad_overrides_name_the_option():
         load_config(["/no/such/file.yaml"])
 
 
+def test_numbers_in_exponent_notation_are_numbers(tmp_path):
+    # PyYAML resolves YAML 1.1, where 1e-9 (no decimal point) is a string
+    f = tmp_path / "c.yaml"
+    f.write_text("fuse: {hinf: {gamma: 3E+1}}\n")
+    cfg = load_config([f], ["fuse.association.iterate_sigma_ratio=1e-9"])
+    assert cfg.fuse.association.iterate_sigma_ratio == 1e-9
+    assert cfg.fuse.hinf.gamma == 30.0
+    # still checked as numbers, and shown as written
+    with pytest.raises(
+        ConfigError, match=r"fuse\.hinf\.gamma: expected a number > 0\.0, got '-1e3'"
+    ):
+        load_config(overrides=["fuse.hinf.gamma=-1e3"])
+    with pytest.raises(ConfigError, match=r"got '1e-9x'"):
+        load_config(overrides=["fuse.hinf.gamma=1e-9x"])
+    with pytest.raises(ConfigError, match=r"expected an integer >= 0, got '1e3'"):
+        load_config(overrides=["logs.vehicle_defaults.rig.left.width=1e3"])
+
+
 # -- values checked where they enter (issue 16) ------------------------------------------------
 
 
