@@ -39,11 +39,12 @@ Then neither the updates nor the landmarks put back add information along N, and
 uncertainty of the team's position and heading only grows from the initial prior, as in
 the exact system.
 
-`auto` (the default, `constrained`) keeps it on when every vehicle has an IMU and off
-otherwise: it measured better with UAVs (anchored inverse depth, simulated images and
-landmark mode alike) and worse with ground robots in landmark mode and on KITTI clip b
-(BENCHMARKS.md, "Fuse: consistency (issue 15)", ninth, eleventh and twelfth steps), the
-same line as `landmark_coordinates.resolve` draws.
+`auto` (the default, `constrained`) keeps it on when a vehicle of the team has an IMU
+(`motion.models.inertial_team`) and off otherwise: it measured better with UAVs (anchored
+inverse depth, simulated images and landmark mode alike) and with UAVs and ground robots in
+one team, and worse with ground robots alone in landmark mode and on KITTI clip b
+(BENCHMARKS.md, "Fuse: consistency (issue 15)", ninth, eleventh and twelfth steps; "Fuse: a
+mixed team mapped the aerial way"), the same line as `landmark_coordinates.resolve` draws.
 
 The down translation is in the gauge only when every vehicle has a height state: a ground
 robot (`OdometryModel`) drives at a known height and so pins the map's. A prior map
@@ -59,7 +60,7 @@ from typing import Literal
 import numpy as np
 import scipy.linalg
 
-from cvslam_cli.estimation.motion.models import MotionModel, all_inertial
+from cvslam_cli.estimation.motion.models import MotionModel, inertial_team
 from cvslam_cli.records.arrays import F64
 
 # Columns of N: translations north, east, down, then the turn about the down axis.
@@ -89,9 +90,9 @@ def _setting(setting: ConstrainedSetting, motion_kinds: Sequence[str]) -> tuple[
         return setting, "fuse.observability_constrained"
     if setting != "auto":
         raise ValueError(f"observability_constrained: expected 'auto' or a bool, got {setting!r}")
-    if all_inertial(motion_kinds):
-        return True, "auto: every vehicle has an IMU"
-    return False, "auto: a vehicle without an IMU"
+    if inertial_team(motion_kinds):
+        return True, "auto: a vehicle has an IMU"
+    return False, "auto: no vehicle has an IMU"
 
 
 def has_down_translation(models: list[MotionModel]) -> bool:

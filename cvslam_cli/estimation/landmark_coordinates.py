@@ -37,7 +37,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from cvslam_cli.estimation.motion.models import all_inertial
+from cvslam_cli.estimation.motion.models import inertial_team
 from cvslam_cli.geometry.rotations import euler_zyx_matrices
 from cvslam_cli.records.arrays import F64
 
@@ -145,16 +145,17 @@ def resolve(
     setting: CoordinatesSetting, motion_kinds: Sequence[str]
 ) -> tuple[CoordinatesName, str]:
     """The coordinates the setting fuse.map.landmark_coordinates gives a team whose vehicles
-    have motion models `motion_kinds`, and why. auto: inverse depth when every vehicle has
-    an IMU (UAVs over ground far below, where it measured better in accuracy and
-    consistency), else Cartesian (wheel odometry or none: ground vehicles with forward
-    cameras at short range, where the Cartesian point measured better; BENCHMARKS.md,
-    "Fuse: consistency (issue 15)")."""
+    have motion models `motion_kinds`, and why. auto: inverse depth when a vehicle has an
+    IMU (`motion.models.inertial_team`: UAVs over ground far below, where it measured better
+    in accuracy and consistency, for the ground robots of a team with UAVs too), else
+    Cartesian (wheel odometry or none: ground vehicles alone, with forward cameras at short
+    range, where the Cartesian point measured better; BENCHMARKS.md, "Fuse: consistency
+    (issue 15)", "Fuse: a mixed team mapped the aerial way")."""
     if setting != "auto":
         return setting, "fuse.map.landmark_coordinates"
-    if all_inertial(motion_kinds):
-        return "inverse_depth", "auto: every vehicle has an IMU"
-    return "cartesian", "auto: a vehicle without an IMU"
+    if inertial_team(motion_kinds):
+        return "inverse_depth", "auto: a vehicle has an IMU"
+    return "cartesian", "auto: no vehicle has an IMU"
 
 
 def coordinates(name: CoordinatesName) -> LandmarkCoordinates:

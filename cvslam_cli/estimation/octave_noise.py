@@ -18,12 +18,14 @@ upsampled image's). `auto`'s octave 0 number is 1, so the finest keypoints keep 
 noise, and a run whose keypoints are all of octave 0 (the landmark-mode simulator's, whose
 noise is one sigma for every keypoint) is the filter without it.
 
-`auto` (the default): AUTO_FACTORS when every vehicle has an IMU, every octave alike
-otherwise. Where it was measured, the UAV teams (IMU, cameras looking down) gained in
-accuracy and consistency, and the vehicles without an IMU, with forward cameras, lost: the
-car of the KITTI clips (constant velocity) on both clips, the ground robots of `ugv2_yard`
-(wheel odometry) on two seeds of three, one of them badly; why is not known. The same line
-as the landmark coordinates' and the observability constraint's `auto`.
+`auto` (the default): AUTO_FACTORS when a vehicle of the team has an IMU
+(`motion.models.inertial_team`), every octave alike otherwise. Where it was measured, the
+UAV teams (IMU, cameras looking down) gained in accuracy and consistency, and the vehicles
+without an IMU, with forward cameras, lost: the car of the KITTI clips (constant velocity)
+on both clips, the ground robots of `ugv2_yard` (wheel odometry) on two seeds of three, one
+of them badly; why is not known. With UAVs in the team (`mixed_yard`) the ground robots too
+gained, with the rest of an aerial team's settings. The same line as the landmark
+coordinates' and the observability constraint's `auto`.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from typing import Literal
 
 import numpy as np
 
-from cvslam_cli.estimation.motion.models import all_inertial
+from cvslam_cli.estimation.motion.models import inertial_team
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.features import FeatureSet
 
@@ -48,9 +50,9 @@ def resolve(setting: OctaveSetting, motion_kinds: Sequence[str]) -> tuple[tuple[
     motion models `motion_kinds`, and why (module docstring)."""
     if setting != "auto":
         return tuple(setting), "fuse.association.octave_bearing_variance"
-    if all_inertial(motion_kinds):
-        return AUTO_FACTORS, "auto: every vehicle has an IMU"
-    return (), "auto: a vehicle without an IMU"
+    if inertial_team(motion_kinds):
+        return AUTO_FACTORS, "auto: a vehicle has an IMU"
+    return (), "auto: no vehicle has an IMU"
 
 
 @dataclass(frozen=True, eq=False)

@@ -170,8 +170,9 @@ def test_the_down_translation_leaves_the_gauge_with_a_ground_robot():
 
 
 def test_auto_constrains_a_team_only_when_every_vehicle_has_an_imu():
-    assert constrained("auto", ["ins", "ins"]) == (True, "auto: every vehicle has an IMU")
-    assert not constrained("auto", ["ins", "odometry"])[0]
+    assert constrained("auto", ["ins", "ins"]) == (True, "auto: a vehicle has an IMU")
+    assert constrained("auto", ["ins", "odometry"])[0]  # a mixed team: the aerial way
+    assert not constrained("auto", ["odometry", "odometry"])[0]
     assert not constrained("auto", ["constant_velocity"])[0]
     assert not constrained("auto", [])[0]
     assert constrained(True, ["odometry"])[0] and not constrained(False, ["ins"])[0]

@@ -27,8 +27,9 @@ def test_factors_of_one_for_every_match_leave_the_noise_alone() -> None:
 
 
 def test_auto_scales_the_octaves_when_every_vehicle_has_an_imu() -> None:
-    assert resolve("auto", ["ins", "ins"]) == (AUTO_FACTORS, "auto: every vehicle has an IMU")
-    assert resolve("auto", ["ins", "odometry"])[0] == ()
+    assert resolve("auto", ["ins", "ins"]) == (AUTO_FACTORS, "auto: a vehicle has an IMU")
+    assert resolve("auto", ["ins", "odometry"])[0] == AUTO_FACTORS  # a mixed team
+    assert resolve("auto", ["odometry", "odometry"])[0] == ()
     assert resolve("auto", ["constant_velocity"])[0] == ()
     assert resolve((1.0, 2.0), ["odometry"])[0] == (1.0, 2.0)
     assert resolve((), ["ins"])[0] == ()

@@ -24,8 +24,8 @@ def test_auto_goes_by_the_motion_models_of_the_team(kind: str, n: int) -> None:
     budget, why = resolve("auto", "auto", [kind, kind])
     assert budget == UpdateBudget(n, n)
     assert why.startswith("auto")
-    # a team with one vehicle without an IMU (a mixed team) keeps the figure without one
-    assert resolve("auto", "auto", ["ins", kind])[0].max_updates == n
+    # a team with a vehicle with an IMU (a mixed team too) takes the figure with one
+    assert resolve("auto", "auto", ["ins", kind])[0].max_updates == AUTO_WITH_IMU
 
 
 def test_configured_figures_are_kept_and_the_target_follows_the_updates_on_auto() -> None:
