@@ -39,12 +39,16 @@ Then neither the updates nor the landmarks put back add information along N, and
 uncertainty of the team's position and heading only grows from the initial prior, as in
 the exact system.
 
-`auto` (the default, `constrained`) keeps it on when a vehicle of the team has an IMU
-(`motion.models.inertial_team`) and off otherwise: it measured better with UAVs (anchored
-inverse depth, simulated images and landmark mode alike) and with UAVs and ground robots in
-one team, and worse with ground robots alone in landmark mode and on KITTI clip b
-(BENCHMARKS.md, "Fuse: consistency (issue 15)", ninth, eleventh and twelfth steps; "Fuse: a
-mixed team mapped the aerial way"), the same line as `landmark_coordinates.resolve` draws.
+`auto` (the default, `constrained`) keeps it on when every vehicle's motion is measured (an
+IMU or wheel odometry) and off when one is only extrapolated (the constant-velocity model:
+the KITTI car, where clip b lost with it). It measured better with UAVs (anchored inverse
+depth, simulated images and landmark mode alike), with UAVs and ground robots in one team,
+and with ground robots alone on their images (`ugv2_yard` seeds 1-6: error 0.54 -> 0.17 m,
+position NEES <= 6 on 10 of 12 vehicle-runs against 1), the case Huang et al. studied; in
+landmark mode the ground robots lost with it (0.10 -> 0.21 m, seeds 1-3), a case with no
+wrong association whose loss is not understood (BENCHMARKS.md, "Fuse: consistency (issue
+15)", ninth, eleventh and twelfth steps; "Fuse: a mixed team mapped the aerial way"; "Fuse:
+ground robots constrained by default").
 
 The down translation is in the gauge only when every vehicle has a height state: a ground
 robot (`OdometryModel`) drives at a known height and so pins the map's. A prior map
@@ -60,7 +64,7 @@ from typing import Literal
 import numpy as np
 import scipy.linalg
 
-from cvslam_cli.estimation.motion.models import MotionModel, inertial_team
+from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.records.arrays import F64
 
 # Columns of N: translations north, east, down, then the turn about the down axis.
@@ -90,9 +94,16 @@ def _setting(setting: ConstrainedSetting, motion_kinds: Sequence[str]) -> tuple[
         return setting, "fuse.observability_constrained"
     if setting != "auto":
         raise ValueError(f"observability_constrained: expected 'auto' or a bool, got {setting!r}")
-    if inertial_team(motion_kinds):
-        return True, "auto: a vehicle has an IMU"
-    return False, "auto: no vehicle has an IMU"
+    if motion_measured(motion_kinds):
+        return True, "auto: every vehicle has an IMU or wheel odometry"
+    return False, "auto: a vehicle without an IMU or wheel odometry"
+
+
+def motion_measured(motion_kinds: Sequence[str]) -> bool:
+    """Whether a team whose vehicles have these motion models (`MotionModel.kind`) is not
+    empty and every vehicle's motion is measured (an IMU or wheel odometry), none only
+    extrapolated (the constant-velocity model): what `auto` goes by (module docstring)."""
+    return bool(motion_kinds) and all(k in ("ins", "odometry") for k in motion_kinds)
 
 
 def has_down_translation(models: list[MotionModel]) -> bool:

@@ -3,10 +3,10 @@ Figure 17): cooperative vs each robot alone vs wheel-odometry dead reckoning.
 
 The whole pipeline as a user runs it: `cvslam simulate ugv2_yard --seed S` (images), `cvslam
 extract` on both logs, `cvslam fuse --single` and `cvslam fuse` (cooperative), with the
-`fuse.` overrides of the dataset recipe `datasets/ugv2_yard.yaml` (the observability constraint,
-which a ground robot with images needs: BENCHMARKS.md, "Fuse: another vehicle's landmark,
-distinct in the whole frame"), or CVSLAM_YARD_SET (";"-separated; "" for the plain
-defaults); odometry motion model, NH-infinity. Landmark mode is not used here: it has no
+`fuse.` overrides of the dataset recipe `datasets/ugv2_yard.yaml` (none since the
+observability constraint is on by default for wheel odometry: BENCHMARKS.md, "Fuse: ground
+robots constrained by default"), or CVSLAM_YARD_SET (";"-separated); odometry motion model,
+NH-infinity. Landmark mode is not used here: it has no
 occlusion and no change of appearance with the viewing angle, which is what makes forward
 cameras hard (two robots driving towards each other see the two sides of the same boxes).
 
@@ -14,10 +14,10 @@ Per seed and robot: position RMSE and final error (cooperative, single, dead rec
 loop closures, type-2 observations and the events. Asserted: no divergence; every robot's
 RMSE at most half of dead reckoning's (the yard is small: odometry drifts only 4-5 m RMSE),
 in both modes; cooperative RMSE not above single (1.05x) for each robot, on each seed (issue
-15's goal 3). On 2026-12-07 (the recipe's overrides, seed 2) that last check fails: robot1
+15's goal 3). On 2026-12-07 (with the constraint, seed 2) that last check fails: robot1
 0.12 vs 0.09 m, robot2 0.16 vs 0.11 m, though the final errors are lower cooperative (0.08 /
-0.15 against 0.16 / 0.20 m); dead reckoning 4.43 and 5.21 m (at the plain defaults robot2 0.11
-vs 0.10 m, robot1 0.70 vs 0.85 m). Two robots that see the yard's walls from opposite
+0.15 against 0.16 / 0.20 m); dead reckoning 4.43 and 5.21 m (without the constraint robot2
+0.11 vs 0.10 m, robot1 0.70 vs 0.85 m). Two robots that see the yard's walls from opposite
 directions share few landmarks (9 type-2 observations for robot1).
 
 Environment: CVSLAM_YARD_SEEDS (default "2", the scenario's own seed; each seed takes about

@@ -169,10 +169,13 @@ def test_the_down_translation_leaves_the_gauge_with_a_ground_robot():
     assert JointState([("uav", INS, _state(INS, RNG), np.eye(INS.n))]).N is None
 
 
-def test_auto_constrains_a_team_only_when_every_vehicle_has_an_imu():
-    assert constrained("auto", ["ins", "ins"]) == (True, "auto: a vehicle has an IMU")
-    assert constrained("auto", ["ins", "odometry"])[0]  # a mixed team: the aerial way
-    assert not constrained("auto", ["odometry", "odometry"])[0]
+def test_auto_constrains_a_team_whose_every_vehicle_measures_its_motion():
+    assert constrained("auto", ["ins", "ins"]) == (
+        True, "auto: every vehicle has an IMU or wheel odometry"
+    )  # fmt: skip
+    assert constrained("auto", ["ins", "odometry"])[0]  # a mixed team
+    assert constrained("auto", ["odometry", "odometry"])[0]  # ground robots
+    assert not constrained("auto", ["ins", "constant_velocity"])[0]
     assert not constrained("auto", ["constant_velocity"])[0]
     assert not constrained("auto", [])[0]
     assert constrained(True, ["odometry"])[0] and not constrained(False, ["ins"])[0]
