@@ -25,6 +25,7 @@ from cvslam_cli.estimation.association import (
     noise_scale,
     pose_consistent,
     record_observations,
+    view_rays,
 )
 from cvslam_cli.estimation.events import EventLog
 from cvslam_cli.estimation.mapping import LandmarkBook
@@ -76,10 +77,16 @@ class Cooperation:
             return
         vin = other.vin
         pose = VehiclePose.of(self.state, vin)
-        front = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots))
+        m = self.state.landmarks(slots)
+        front = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, m)
+        _, distance = view_rays(vin, pose.p_nav_m, pose.euler_rad, m[front])
+        ids = self.book.slot_ids[slots[front]]
+        near = self.book.ids_within_distance(
+            ids, other.index, distance, s.other_vehicle_max_distance_ratio
+        )
+        front, ids = front[near], ids[near]
         if not len(front):
             return
-        ids = self.book.slot_ids[slots[front]]
         scale = noise_scale(self.book, ids, other.index, s.other_vehicle_noise_ratio)
         pred, errors = self.updater.predict(vin, pose, slots[front], scale)
         assoc = associate(

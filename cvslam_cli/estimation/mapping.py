@@ -60,6 +60,9 @@ class LandmarkBook:
         self.evicted_ns = np.full(capacity, NEVER, dtype=np.int64)  # last eviction
         self.reactivations = np.zeros(capacity, dtype=np.int64)
         self.view_sum = np.zeros((capacity, 3))
+        # the sum of ln(distance / m) from the landmark to the cameras that observed it (nan:
+        # unknown, a prior map's landmark: the map file does not keep it)
+        self.log_distance_sum = np.zeros(capacity)
         # gauge rows (nav frame) at eviction, when the state carries a gauge (gauge.py)
         self.gauge_nav = np.zeros((capacity, 3, 4))
         # mapped by a vehicle whose pose had gone wrong: position unknown (relocalisation.py)
@@ -83,6 +86,7 @@ class LandmarkBook:
             "evicted_ns",
             "reactivations",
             "view_sum",
+            "log_distance_sum",
             "gauge_nav",
             "forgotten",
         ):
@@ -100,9 +104,11 @@ class LandmarkBook:
         stamp_ns: int,
         true_id: I64,
         view_dir: F64,
+        distance_m: F64 | None = None,
     ) -> I64:
         """Register k new landmarks (appended to the state's slots), seen along the unit
-        vectors view_dir (k, 3) (landmark to camera, nav frame). Returns their ids."""
+        vectors view_dir (k, 3) (landmark to camera, nav frame) from `distance_m` (k,) (None:
+        unknown). Returns their ids."""
         k = len(desc)
         ids = np.arange(self.count, self.count + k)
         self._grow(self.count + k)
@@ -113,17 +119,21 @@ class LandmarkBook:
         self.last_seen_ns[ids, vehicle] = stamp_ns
         self.true_id[ids] = true_id
         self.view_sum[ids] = view_dir
+        self.log_distance_sum[ids] = np.nan if distance_m is None else np.log(distance_m)
         self.count += k
         self.slot_ids = np.concatenate([self.slot_ids, ids])
         return ids
 
-    def observe(self, ids: I64, vehicle: int, stamp_ns: int, view_dir: F64) -> None:
+    def observe(
+        self, ids: I64, vehicle: int, stamp_ns: int, view_dir: F64, distance_m: F64
+    ) -> None:
         """Landmarks `ids` (k,) observed by `vehicle` along view_dir (k, 3) (unit vectors,
-        landmark to camera)."""
+        landmark to camera) from `distance_m` (k,)."""
         self.n_observations[ids] += 1
         self.observers[ids] |= 1 << vehicle
         self.last_seen_ns[ids, vehicle] = stamp_ns
         self.view_sum[ids] += view_dir
+        self.log_distance_sum[ids] += np.log(distance_m)
 
     def seen_from(self, slots: I64, view_dir: F64, min_cos: float) -> NDArray[np.bool_]:
         """(k,) whether landmarks in `slots` are viewed along view_dir (k, 3) (unit vectors)
@@ -138,6 +148,21 @@ class LandmarkBook:
         with np.errstate(invalid="ignore", divide="ignore"):
             cos = np.einsum("ij,ij->i", mean, view_dir) / norm
         return (norm == 0) | (cos >= min_cos)
+
+    def ids_within_distance(
+        self, ids: I64, vehicle: int, distance_m: F64, max_ratio: float
+    ) -> NDArray[np.bool_]:
+        """(k,) whether `vehicle`, at `distance_m` (k,) from landmarks `ids` (k,), may look
+        for them: a landmark it has observed, or one whose viewing distance (the geometric
+        mean of its observations') is unknown, always; any other within a factor
+        `max_ratio` of that distance (0: no limit). Module docstring of association.py."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if max_ratio <= 0:
+            return np.ones(len(ids), dtype=bool)
+        mean_log = self.log_distance_sum[ids] / np.maximum(self.n_observations[ids], 1)
+        with np.errstate(invalid="ignore"):
+            far = np.abs(np.log(distance_m) - mean_log) > np.log(max_ratio)
+        return (self.last_seen_ns[ids, vehicle] != NEVER) | ~far
 
     def eviction_order(
         self, protected_slots: I64, trace_cov: F64, latest_frame_ns: I64, tracking_ns: int = 0

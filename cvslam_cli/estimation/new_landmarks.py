@@ -40,7 +40,7 @@ from cvslam_cli.estimation.association import (
     associate,
     in_view_rows,
     spread_order,
-    view_directions,
+    view_rays,
 )
 from cvslam_cli.estimation.frame import FrameMatches
 from cvslam_cli.estimation.landmark_coordinates import AnchoredInverseDepth
@@ -156,7 +156,7 @@ class NewLandmarks:
             run.index,
             frame.stamp_ns,
             frame.true_id[pick],
-            view_directions(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots)),
+            *view_rays(vin, pose.p_nav_m, pose.euler_rad, self.state.landmarks(slots)),
         )
         run.observations.add(frame.stamp_ns, ids, frame.z[pick])
         return slots, pick

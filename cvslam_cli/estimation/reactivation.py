@@ -59,7 +59,7 @@ from cvslam_cli.estimation.association import (
     noise_scale,
     pose_consistent,
     scaled_noise,
-    view_directions,
+    view_rays,
 )
 from cvslam_cli.estimation.frame import FrameMatches
 from cvslam_cli.estimation.gauge import gauge_correlated
@@ -134,8 +134,10 @@ class Reactivation:
         ids = ids[in_view_rows(vin, p, euler, book.p_nav_m[ids])]
         if not len(ids):
             return none
-        views = view_directions(vin, p, euler, book.p_nav_m[ids])
-        ids = ids[book.ids_seen_from(ids, views, np.cos(s.max_view_angle_rad))]
+        views, distance = view_rays(vin, p, euler, book.p_nav_m[ids])
+        ok = book.ids_seen_from(ids, views, np.cos(s.max_view_angle_rad))
+        ok &= book.ids_within_distance(ids, run.index, distance, s.other_vehicle_max_distance_ratio)
+        ids = ids[ok]
         if not len(ids):
             return none
         C = self.inflated_cov(ids)

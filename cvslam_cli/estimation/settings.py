@@ -59,6 +59,9 @@ class SlamSettings:
     # pixel noise of an observation of a landmark another vehicle has observed (0: as
     # pixel_sigma_px; never below it): `association.noise_scale`
     other_vehicle_pixel_sigma_px: float = 0.0
+    # a landmark the vehicle has not observed yet is looked for only from within this factor
+    # of the distance it was observed from (0: no limit): `LandmarkBook.ids_within_distance`
+    other_vehicle_max_distance_ratio: float = 4.0
     max_descriptor_distance: float = 350.0
     # the bearing noise variance of a keypoint by its octave, relative (octave_noise.py)
     octave_bearing_variance: OctaveSetting = "auto"

@@ -310,7 +310,10 @@ class Slam:
         and every match classified."""
         s = self.settings
         pose = VehiclePose.of(self.state, run.vin)
-        visible = visible_slots(self.state, self.book, run.vin, pose, s.max_view_angle_rad)
+        visible = visible_slots(
+            self.state, self.book, run, pose, s.max_view_angle_rad,
+            s.other_vehicle_max_distance_ratio,
+        )  # fmt: skip
         out = FrameOutcome(unassociated(len(frame)).type, visible=len(visible))
         if not (len(visible) and len(frame)):
             return None, out
@@ -371,9 +374,11 @@ class Slam:
         if not len(found.ids):
             return 0
         pose = VehiclePose.of(self.state, run.vin)
+        s = self.settings
         protected = visible_slots(
-            self.state, self.book, run.vin, pose, self.settings.max_view_angle_rad
-        )
+            self.state, self.book, run, pose, s.max_view_angle_rad,
+            s.other_vehicle_max_distance_ratio,
+        )  # fmt: skip
         room = self.mapper.make_room(run, self.runs, protected, np.arange(len(found.ids)))
         if not len(room):
             return 0

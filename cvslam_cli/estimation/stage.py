@@ -534,6 +534,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         other_vehicle_descriptor_ratio=a.other_vehicle_descriptor_ratio,
         other_vehicle_ratio_over_frame=a.other_vehicle_ratio_over_frame,
         other_vehicle_pixel_sigma_px=a.other_vehicle_pixel_sigma_px,
+        other_vehicle_max_distance_ratio=a.other_vehicle_max_distance_ratio,
         max_descriptor_distance=a.max_descriptor_distance,
         octave_bearing_variance=a.octave_bearing_variance,
         iterate_sigma_ratio=a.iterate_sigma_ratio,

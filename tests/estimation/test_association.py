@@ -206,7 +206,7 @@ def test_noise_scale_flags_the_landmarks_another_vehicle_has_observed():
     book = LandmarkBook(3)
     down = np.tile([0.0, 0.0, -1.0], (4, 1))
     ids = book.add(np.zeros((4, 128), np.uint8), 0, 10, np.full(4, -1), down)  # vehicle 0's
-    book.observe(ids[2:3], 1, 20, down[:1])  # vehicle 1 sees landmark 2 too
+    book.observe(ids[2:3], 1, 20, down[:1], np.array([10.0]))  # vehicle 1 sees 2 too
     np.testing.assert_array_equal(noise_scale(book, ids, 0, 4.0), [1.0, 1.0, 4.0, 1.0])
     np.testing.assert_array_equal(noise_scale(book, ids, 1, 4.0), [4.0, 4.0, 4.0, 4.0])
     np.testing.assert_array_equal(noise_scale(book, ids, 2, 4.0), [4.0] * 4)

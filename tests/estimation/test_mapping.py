@@ -6,19 +6,21 @@ import numpy as np
 
 from cvslam_cli.estimation.mapping import NEVER, LandmarkBook
 
+TEN_M = 10.0  # the distance of an observation (m), where the test does not look at it
+
 
 def _book(n_landmarks: int, n_vehicles: int = 2) -> LandmarkBook:
     book = LandmarkBook(n_vehicles, capacity=2)  # grows
     desc = np.zeros((n_landmarks, 128), dtype=np.uint8)
     views = np.tile([0.0, 0.0, -1.0], (n_landmarks, 1))
-    book.add(desc, 0, 100, np.full(n_landmarks, -1), views)
+    book.add(desc, 0, 100, np.full(n_landmarks, -1), views, np.full(n_landmarks, TEN_M))
     return book
 
 
 def test_eviction_order_protected_never_fewest_observations_first_then_largest_covariance():
     book = _book(6)
-    book.observe(np.array([1, 2, 3]), 0, 200, np.tile([0.0, 0.0, -1.0], (3, 1)))
-    book.observe(np.array([2]), 0, 300, np.array([[0.0, 0.0, -1.0]]))
+    book.observe(np.array([1, 2, 3]), 0, 200, np.tile([0.0, 0.0, -1.0], (3, 1)), TEN_M)
+    book.observe(np.array([2]), 0, 300, np.array([[0.0, 0.0, -1.0]]), TEN_M)
     trace = np.array([1.0, 2.0, 3.0, 9.0, 0.5, 4.0])
     order = book.eviction_order(np.array([5]), trace, np.array([NEVER, NEVER]))
     # slot 5 protected; seen once: 0 (trace 1), 4 (0.5) -> the larger first; twice: 3 (9), 1 (2)
@@ -28,8 +30,8 @@ def test_eviction_order_protected_never_fewest_observations_first_then_largest_c
 def test_landmarks_another_vehicle_tracks_go_last():
     book = _book(4)
     # vehicle 1 observed landmarks 0 and 1 in its latest frame (t = 500)
-    book.observe(np.array([0, 1]), 1, 500, np.tile([0.0, 0.0, -1.0], (2, 1)))
-    book.observe(np.array([2]), 1, 400, np.array([[0.0, 0.0, -1.0]]))
+    book.observe(np.array([0, 1]), 1, 500, np.tile([0.0, 0.0, -1.0], (2, 1)), TEN_M)
+    book.observe(np.array([2]), 1, 400, np.array([[0.0, 0.0, -1.0]]), TEN_M)
     order = book.eviction_order(np.zeros(0, np.int64), np.ones(4), np.array([NEVER, 500]))
     assert list(order[-2:]) == [0, 1] and set(order[:2]) == {2, 3}
     assert list(order[:2]) == [3, 2]  # fewer observations first
@@ -40,7 +42,7 @@ def test_landmarks_another_vehicle_observed_within_its_tracking_window_go_last()
     # vehicle 1's latest frame is at t = 500: landmark 0 observed then, 1 at 300 and 2 at 100
     # (each twice now), 3 never by it
     for lm, t in ((0, 500), (1, 300), (2, 100)):
-        book.observe(np.array([lm]), 1, t, np.array([[0.0, 0.0, -1.0]]))
+        book.observe(np.array([lm]), 1, t, np.array([[0.0, 0.0, -1.0]]), TEN_M)
     latest = np.array([NEVER, 500])
     # the latest frame only: 1 and 2 go with 3 (3 has fewer observations: first)
     assert list(book.eviction_order(np.zeros(0, np.int64), np.ones(4), latest)) == [3, 1, 2, 0]
@@ -54,12 +56,28 @@ def test_landmarks_another_vehicle_observed_within_its_tracking_window_go_last()
 
 def test_viewing_angle_limit_and_other_observers():
     book = _book(2)
-    book.observe(np.array([1]), 1, 200, np.array([[0.0, 0.0, -1.0]]))
+    book.observe(np.array([1]), 1, 200, np.array([[0.0, 0.0, -1.0]]), TEN_M)
     tilted = np.array([[np.sin(1.0), 0.0, -np.cos(1.0)], [0.0, np.sin(1.5), -np.cos(1.5)]])
     assert list(book.seen_from(np.array([0, 1]), tilted, np.cos(1.2))) == [True, False]
     assert book.other_observers(np.array([0, 1]), 0, ["uav1", "uav2"]) == "uav2"
     assert book.other_observers(np.array([0]), 0, ["uav1", "uav2"]) == ""
     assert book.archive(["uav1", "uav2"], "cartesian").observers() == ("uav1", "uav1;uav2")
+
+
+def test_another_vehicles_landmark_is_looked_for_from_about_its_distance():
+    book = _book(3)  # vehicle 0 observed them from 10 m (`_book`), landmark 2 from no distance
+    book.observe(np.array([1]), 0, 200, np.array([[0.0, 0.0, -1.0]]), np.array([40.0]))
+    ids = np.array([0, 0, 0, 1, 1])
+    # vehicle 1 never observed them: within 4x of 10 m, and of 20 m for landmark 1 (the
+    # geometric mean of 10 and 40)
+    at = np.array([30.0, 50.0, 2.0, 70.0, 90.0])
+    assert book.ids_within_distance(ids, 1, at, 4.0).tolist() == [True, False, False, True, False]
+    assert book.ids_within_distance(ids, 1, at, 0.0).all()  # 0: no limit
+    assert book.ids_within_distance(ids, 0, at, 4.0).all()  # its own: from any distance
+    book.observe(np.array([0]), 1, 300, np.array([[0.0, 0.0, -1.0]]), np.array([45.0]))
+    assert book.ids_within_distance(np.array([0]), 1, np.array([500.0]), 4.0).all()  # seen now
+    unknown = book.add(np.zeros((1, 128), np.uint8), 0, 0, np.array([-1]), np.zeros((1, 3)))
+    assert book.ids_within_distance(unknown, 1, np.array([1e4]), 4.0).all()  # a prior map's
 
 
 def test_evicted_landmarks_keep_their_gaussian_and_come_back_in_the_archive():

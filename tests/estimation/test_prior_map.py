@@ -108,7 +108,7 @@ def test_prior_map_round_trip_seeds_the_book_and_keeps_sessions(worlds, tmp_path
     np.testing.assert_array_equal(book.p_nav_m[:n], a.p_nav_m)
     # one new landmark seen by this session's uav2; prior landmark 0 observed again
     book.add(a.descriptor[:1], 0, 7, np.array([-1]), np.array([[0.0, 0.0, -1.0]]))
-    book.observe(np.array([0]), 0, 9, np.array([[0.0, 0.0, -1.0]]))
+    book.observe(np.array([0]), 0, 9, np.array([[0.0, 0.0, -1.0]]), np.array([10.0]))
     merged = prior.merged_archive(book.archive(["uav2"], a.coordinates))
     assert merged.vehicles == ("uav1", "uav2") and len(merged) == n + 1
     assert list(merged.session[[0, n]]) == [0, 1]

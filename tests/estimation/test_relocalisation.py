@@ -115,7 +115,7 @@ def test_what_the_vehicle_alone_mapped_since_it_was_confirmed_is_forgotten() -> 
     for i in range(k):
         vehicle = 1 if i == 3 else 0
         book.add(desc[i : i + 1], vehicle, int(seen[i]), np.array([i]), np.array([[0.0, 0, -1]]))
-    book.observe(np.array([4]), 1, 310, np.array([[0.0, 0, -1]]))  # 4: seen by both
+    book.observe(np.array([4]), 1, 310, np.array([[0.0, 0, -1]]), np.array([10.0]))  # both
     run = SimpleNamespace(index=0, verified_ns=200, tracked_ns=250, vin=SimpleNamespace(start_ns=0))
     n = forget_mapped(st, book, run, 400, 400.0, 100)  # type: ignore[arg-type]
     assert n == 2  # landmarks 2 and 5
