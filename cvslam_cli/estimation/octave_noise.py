@@ -25,7 +25,7 @@ without an IMU, with forward cameras, lost: the car of the KITTI clips (constant
 on both clips, the ground robots of `ugv2_yard` (wheel odometry) on two seeds of three, one
 of them badly; why is not known. With UAVs in the team (`mixed_yard`) the ground robots too
 gained, with the rest of an aerial team's settings. The same line as the landmark
-coordinates' and the observability constraint's `auto`.
+coordinates' and the update budget's `auto`.
 """
 
 from __future__ import annotations

@@ -18,9 +18,8 @@ landmark-mode Monte Carlo), at a third more time; the car of the KITTI clips (co
 velocity) lost; a team of UAVs with ground robots lost with the UAVs at 60 and the rest of
 a ground team's settings (`mixed_yard` seed 1, every vehicle but one), and gained with 60
 and the rest of an aerial team's ("Fuse: a mixed team mapped the aerial way"). Teams in
-landmark mode (perfect
-associations) lost too (`uav4_team` 11 %): what it costs is listed there. The same line as
-the landmark coordinates', the observability constraint's and the bearing noise's `auto`.
+landmark mode (perfect associations) lost too (`uav4_team` 11 %): what it costs is listed
+there. The same line as the landmark coordinates' and the bearing noise's `auto`.
 """
 
 from __future__ import annotations

@@ -126,13 +126,14 @@ def _vec3(a: F64, name: str) -> F64:
 
 def inertial_team(motion_kinds: Sequence[str]) -> bool:
     """Whether a vehicle of a team whose vehicles have these motion models
-    (`MotionModel.kind`) has an IMU: what the `auto` settings of a team go by (the landmark
-    coordinates, the observability constraint, the bearing noise by octave and the update
-    budget). A team with an aerial vehicle maps the way its aerial vehicles need (far ground,
-    a gauge of translation and heading), ground vehicles in it included: on the mixed team
-    (`mixed_yard`, UAVs and ground robots) every kind of vehicle was more accurate so than
-    with the settings of a ground team (BENCHMARKS.md, "Fuse: a mixed team mapped the
-    aerial way"); a team of ground vehicles alone keeps those."""
+    (`MotionModel.kind`) has an IMU: what three `auto` settings of a team go by (the
+    landmark coordinates, the bearing noise by octave and the update budget; the
+    observability constraint goes by `gauge.motion_measured`). A team with an aerial vehicle
+    maps the way its aerial vehicles need (far ground, a gauge of translation and heading),
+    ground vehicles in it included: on the mixed team (`mixed_yard`, UAVs and ground robots)
+    every kind of vehicle was more accurate so than with the settings of a ground team
+    (BENCHMARKS.md, "Fuse: a mixed team mapped the aerial way"); a team of ground vehicles
+    alone keeps those."""
     return any(k == "ins" for k in motion_kinds)
 
 
