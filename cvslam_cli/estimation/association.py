@@ -446,9 +446,12 @@ def visible_slots(
     m_all = state.landmarks()
     slots = in_view_rows(vin, p, euler, m_all)
     views, distance = view_rays(vin, p, euler, m_all[slots])
-    ok = book.seen_from(slots, views, np.cos(max_angle_rad))
-    ok &= book.ids_within_distance(book.slot_ids[slots], run.index, distance, max_distance_ratio)
-    return slots[ok]
+    ids = book.slot_ids[slots]
+    return slots[
+        book.ids_viewable(
+            ids, run.index, views, distance, np.cos(max_angle_rad), max_distance_ratio
+        )
+    ]
 
 
 def record_observations(

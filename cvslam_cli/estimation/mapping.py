@@ -135,19 +135,31 @@ class LandmarkBook:
         self.view_sum[ids] += view_dir
         self.log_distance_sum[ids] += np.log(distance_m)
 
-    def seen_from(self, slots: I64, view_dir: F64, min_cos: float) -> NDArray[np.bool_]:
-        """(k,) whether landmarks in `slots` are viewed along view_dir (k, 3) (unit vectors)
-        within the maximum angle (cos >= min_cos) of their mean viewing direction."""
-        ids = self.slot_ids[np.asarray(slots, dtype=np.int64)]
-        return self.ids_seen_from(ids, view_dir, min_cos)
-
     def ids_seen_from(self, ids: I64, view_dir: F64, min_cos: float) -> NDArray[np.bool_]:
-        """`seen_from` for landmarks given by id (k,), in the state or not."""
+        """(k,) whether landmarks `ids` (k,), in the state or not, are viewed along view_dir
+        (k, 3) (unit vectors) within the maximum angle (cos >= min_cos) of their mean viewing
+        direction."""
         mean = self.view_sum[np.asarray(ids, dtype=np.int64)]
         norm = np.linalg.norm(mean, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
             cos = np.einsum("ij,ij->i", mean, view_dir) / norm
         return (norm == 0) | (cos >= min_cos)
+
+    def ids_viewable(
+        self,
+        ids: I64,
+        vehicle: int,
+        view_dir: F64,
+        distance_m: F64,
+        min_cos: float,
+        max_ratio: float,
+    ) -> NDArray[np.bool_]:
+        """(k,) whether `vehicle`, along view_dir (k, 3) (unit vectors) at `distance_m` (k,)
+        from landmarks `ids` (k,), may look for them: `ids_seen_from` and
+        `ids_within_distance` (module docstring of association.py)."""
+        return self.ids_seen_from(ids, view_dir, min_cos) & self.ids_within_distance(
+            ids, vehicle, distance_m, max_ratio
+        )
 
     def ids_within_distance(
         self, ids: I64, vehicle: int, distance_m: F64, max_ratio: float

@@ -135,9 +135,12 @@ class Reactivation:
         if not len(ids):
             return none
         views, distance = view_rays(vin, p, euler, book.p_nav_m[ids])
-        ok = book.ids_seen_from(ids, views, np.cos(s.max_view_angle_rad))
-        ok &= book.ids_within_distance(ids, run.index, distance, s.other_vehicle_max_distance_ratio)
-        ids = ids[ok]
+        ids = ids[
+            book.ids_viewable(
+                ids, run.index, views, distance, np.cos(s.max_view_angle_rad),
+                s.other_vehicle_max_distance_ratio,
+            )
+        ]  # fmt: skip
         if not len(ids):
             return none
         C = self.inflated_cov(ids)

@@ -58,7 +58,7 @@ def test_viewing_angle_limit_and_other_observers():
     book = _book(2)
     book.observe(np.array([1]), 1, 200, np.array([[0.0, 0.0, -1.0]]), TEN_M)
     tilted = np.array([[np.sin(1.0), 0.0, -np.cos(1.0)], [0.0, np.sin(1.5), -np.cos(1.5)]])
-    assert list(book.seen_from(np.array([0, 1]), tilted, np.cos(1.2))) == [True, False]
+    assert list(book.ids_seen_from(np.array([0, 1]), tilted, np.cos(1.2))) == [True, False]
     assert book.other_observers(np.array([0, 1]), 0, ["uav1", "uav2"]) == "uav2"
     assert book.other_observers(np.array([0]), 0, ["uav1", "uav2"]) == ""
     assert book.archive(["uav1", "uav2"], "cartesian").observers() == ("uav1", "uav1;uav2")
