@@ -30,8 +30,8 @@ The cure kept here (`fuse.observability_constrained`): the state carries N (`Joi
   of the pose it was measured from has zero rows);
 - kept for the landmarks that leave the state (their nav rows, in the landmark book), and
   given back to them when re-activation puts them back, with a cross-covariance with the
-  gauge error the vehicles' states read (`gauge_correlated`), so that they add no
-  information about it;
+  gauge error the states of their group of vehicles read (`gauge_correlated`), so that they
+  add no information about it;
 - and every update's Jacobian modified as little as possible to meet it, one observation at
   a time over the columns it touches (`constrain`): H* = H - (H N) (N^T N)^+ N^T. Each row
   block keeps its own columns, so the update's structure (`filters.BlockRows`) holds.
@@ -65,7 +65,7 @@ import numpy as np
 import scipy.linalg
 
 from cvslam_cli.estimation.motion.models import MotionModel
-from cvslam_cli.records.arrays import F64
+from cvslam_cli.records.arrays import F64, I64
 
 # Columns of N: translations north, east, down, then the turn about the down axis.
 TRANSLATIONS = ("p_n", "p_e", "p_d")
@@ -137,36 +137,57 @@ def constrain(H: F64, N: F64) -> F64:
     return H - (H @ N) @ np.linalg.pinv(G, hermitian=True) @ np.swapaxes(N, -1, -2)
 
 
-def gauge_correlated(P: F64, N: F64, N_m: F64, C: F64, n_vehicle_states: int) -> tuple[F64, F64]:
-    """A point put back into the state with marginals C (k, 3, 3) and gauge rows N_m
-    (k, 3, g) that adds no information about the gauge: m = m_true + N_m g + w, with w
-    independent and g the state's own gauge error as the vehicles read it: the weighted
-    least-squares estimate g = L x from the error of the vehicles' blocks (the leading
-    `n_vehicle_states` rows v of the state, `state.JointState`),
+def gauge_correlated(
+    P: F64, N: F64, N_m: F64, C: F64, groups: Sequence[tuple[I64, I64]]
+) -> tuple[F64, F64]:
+    """Points put back into the state with marginals C (k, 3, 3) and gauge rows N_m
+    (k, 3, g) that add no information about the gauge: m = m_true + N_m g + w, with w
+    independent and g the gauge error of the point's group of vehicles as their states read
+    it. `groups`: (the points j, the state rows v of their group's vehicles), one per group.
+    Per group, g is the weighted least-squares estimate g = L x from the error of those
+    vehicles' blocks,
         L = A^-1 N_v^T P_vv^-1 E_v,   A = N_v^T P_vv^-1 N_v,
-    so that L N = I. Any L with L N = I makes the point a new state y = N_m L x + w whose
+    so that L N = I. Any L with L N = I makes a point a new state y = N_m L x + w whose
     gauge rows N_m L N = N_m are the ones it carries, and such a state leaves N^T P^-1 N as
-    it was (the point tells nothing about where the team is or which way it faces). The
-    vehicles carry almost all of what the state knows about the gauge (their initial
-    prior): the standard deviations of this g are 5-20 % above those of the estimate from
-    the whole state (A = N^T P^-1 N) on `uav2_paper`, and the errors of the runs the same
-    (BENCHMARKS.md, "Fuse: consistency (issue 15)"); it costs O(n_v^3 + g n_v n) where the
-    whole state's A costs a Cholesky factorisation of P, O(n^3).
-    Returns P_mm (3k, 3k) = N_m A^-1 N_m^T + blockdiag(W) with W = C - (N_m A^-1
-    N_m^T)_jj (clipped to be positive semi-definite: where the vehicles know the gauge
-    worse than C, the point is less certain than C) and the cross-covariance
-    P_mx = N_m L P = N_m A^-1 N_v^T P_vv^-1 P_v (3k, n)."""
+    it was (the point tells nothing about where the team is or which way it faces).
+    Which vehicles: a group is the vehicles linked to the point's observers by landmarks
+    they observed (`mapping.LandmarkBook.group`). Vehicles that have shared no landmark have
+    a gauge each (the constraint keeps each one, since every update touches one vehicle's
+    columns and its landmarks'), and a point read from every vehicle would be correlated
+    with vehicles its group never met: its later observations would then move them (two
+    ground robots kept from sharing a landmark reached a correlation of 0.5 between their
+    poses). Within a group, all its vehicles: they carry almost all of what the state
+    knows about its gauge (their initial prior; on `uav2_paper` the standard deviations of
+    their estimate are 5-20 % above those of the whole state's, A = N^T P^-1 N, and the
+    errors of the runs the same: BENCHMARKS.md, "Fuse: consistency (issue 15)"), where the
+    observers alone read it less precisely (`uav2_paper` with images: 5 % larger errors,
+    BENCHMARKS.md "Fuse: a landmark put back, tied to its group of vehicles"). It costs
+    O(n_v^3 + g n_v n) a group, where the whole state's A costs a Cholesky factorisation of
+    P, O(n^3).
+    Returns P_mm (3k, 3k) = N_m L P L^T N_m^T + blockdiag(W) (per group L P L^T = A^-1;
+    between groups a and b, L_a P L_b^T = A_a^-1 N_a^T P_aa^-1 P_ab P_bb^-1 N_b A_b^-1, zero
+    where the groups share nothing) with W = C - (N_m L P L^T N_m^T)_jj (clipped to be
+    positive semi-definite: where the vehicles know the gauge worse than C, the point is
+    less certain than C) and the cross-covariance P_mx = N_m L P (3k, n)."""
     k, g = len(N_m), N.shape[1]
-    v = slice(0, n_vehicle_states)
-    # P_vv is positive definite (prior and process noise); a tiny ridge keeps rounding in the
-    # updates from making it look otherwise to the Cholesky solve
-    ridge = RIDGE * float(np.max(np.diagonal(P[v, v])))
-    X = scipy.linalg.solve(P[v, v] + ridge * np.eye(n_vehicle_states), N[v], assume_a="pos")
-    A = N[v].T @ X
-    S = np.linalg.inv(0.5 * (A + A.T))
-    Nm = N_m.reshape(3 * k, g)
-    P_mx = Nm @ (S @ (X.T @ P[v]))
-    P_mm = Nm @ S @ Nm.T
+    parts = []  # per group: its points' rows of P_mm, N_m there, v, P_vv^-1 N_v, A^-1, L P
+    for points, v in groups:
+        P_vv = P[np.ix_(v, v)]
+        # P_vv is positive definite (prior and process noise); a tiny ridge keeps rounding in
+        # the updates from making it look otherwise to the Cholesky solve
+        ridge = RIDGE * float(np.max(np.diagonal(P_vv)))
+        X = scipy.linalg.solve(P_vv + ridge * np.eye(len(v)), N[v], assume_a="pos")
+        A = N[v].T @ X
+        S = np.linalg.inv(0.5 * (A + A.T))
+        rows = (3 * np.asarray(points)[:, None] + np.arange(3)).ravel()
+        parts.append((rows, N_m[points].reshape(3 * len(points), g), v, X, S, S @ (X.T @ P[v])))
+    P_mx = np.empty((3 * k, P.shape[0]))
+    P_mm = np.empty((3 * k, 3 * k))
+    for a, (rows_a, Nm_a, _, _, S_a, LP_a) in enumerate(parts):
+        P_mx[rows_a] = Nm_a @ LP_a
+        for b, (rows_b, Nm_b, v_b, X_b, S_b, _) in enumerate(parts):
+            LPLt = S_a if a == b else LP_a[:, v_b] @ X_b @ S_b
+            P_mm[np.ix_(rows_a, rows_b)] = Nm_a @ LPLt @ Nm_b.T
     for j in range(k):
         b = slice(3 * j, 3 * j + 3)
         w, V = np.linalg.eigh(C[j] - P_mm[b, b])

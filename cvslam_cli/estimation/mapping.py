@@ -51,6 +51,9 @@ class LandmarkBook:
         self.count = 0
         self.desc = np.zeros((capacity, DESCRIPTOR_SIZE), dtype=np.uint8)
         self.observers = np.zeros(capacity, dtype=np.int64)  # bit i: vehicle i
+        # per vehicle, the bits of the vehicles linked to it by landmarks observed by both, or
+        # through others (itself included): the team's groups, one gauge each (gauge.py)
+        self.linked = np.array([1 << i for i in range(n_vehicles)], dtype=np.int64)
         self.n_observations = np.zeros(capacity, dtype=np.int64)
         self.first_seen_ns = np.zeros(capacity, dtype=np.int64)
         self.last_seen_ns = np.full((capacity, n_vehicles), NEVER, dtype=np.int64)
@@ -131,9 +134,28 @@ class LandmarkBook:
         landmark to camera) from `distance_m` (k,)."""
         self.n_observations[ids] += 1
         self.observers[ids] |= 1 << vehicle
+        if len(ids):
+            self._link(int(np.bitwise_or.reduce(self.observers[ids])))
         self.last_seen_ns[ids, vehicle] = stamp_ns
         self.view_sum[ids] += view_dir
         self.log_distance_sum[ids] += np.log(distance_m)
+
+    def _link(self, bits: int) -> None:
+        """The vehicles of `bits` and those linked to them form one group from now on."""
+        group = 0
+        for i in range(self.n_vehicles):
+            if bits >> i & 1:
+                group |= int(self.linked[i])
+        for i in range(self.n_vehicles):
+            if group >> i & 1:
+                self.linked[i] = group
+
+    def group(self, observers: int) -> int:
+        """The bits of the vehicles linked to those of `observers` (one group: a landmark's
+        observers are linked by it); every vehicle for none (a prior map's landmark)."""
+        if not observers:
+            return (1 << self.n_vehicles) - 1
+        return int(self.linked[(observers & -observers).bit_length() - 1])
 
     def ids_seen_from(self, ids: I64, view_dir: F64, min_cos: float) -> NDArray[np.bool_]:
         """(k,) whether landmarks `ids` (k,), in the state or not, are viewed along view_dir

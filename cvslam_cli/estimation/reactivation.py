@@ -34,13 +34,15 @@ covariance k C: the covariance-intersection bound [[P / w, 0], [0, C / (1 - w)]]
 state's weight w -> 1 taken on the landmark alone (the state, whose correlations are
 known, is left as it is), k = 1 / (1 - w). With the observability constraint
 (`fuse.observability_constrained`, `gauge.py`) the landmark comes back with the gauge rows
-it had when it left and correlated only with the gauge error the vehicles' states read
-(`gauge.gauge_correlated`): its inflated marginal as before, and nothing about where the
-team is or which way it faces. The NEES of the Monte Carlo
-(`tests/estimation/test_reactivation.py`, BENCHMARKS.md "Fuse: re-activation") is the check
-that this is conservative enough. Anchored inverse-depth landmarks are written relative to a
-fresh clone of the vehicle's pose (`JointState.add_anchor`): theta = f(m, anchor) with m
-independent of the anchor, so the nav-frame point keeps exactly the covariance k C.
+it had when it left and correlated only with the gauge error the states of the vehicles
+of its group read (those linked to its observers by landmarks they observed:
+`gauge.gauge_correlated`, `observer_groups`): its inflated marginal as before, and nothing
+about where the team is or which way it faces, nor about a vehicle its group never met.
+The NEES of the Monte Carlo (`tests/estimation/test_reactivation.py`, BENCHMARKS.md "Fuse:
+re-activation") is the check that this is conservative enough. Anchored inverse-depth
+landmarks are written relative to a fresh clone of the vehicle's pose
+(`JointState.add_anchor`): theta = f(m, anchor) with m independent of the anchor, so the
+nav-frame point keeps exactly the covariance k C.
 """
 
 from __future__ import annotations
@@ -188,7 +190,7 @@ class Reactivation:
         # team's position and heading as it did then
         N_m = None if st.N is None else book.gauge_nav[ids, :, : st.N.shape[1]]
         if st.coords.anchored:
-            slots = _anchored(st, run, m, C, N_m)
+            slots = _anchored(st, run, m, C, N_m, observer_groups(st, book, ids))
         elif N_m is None:
             P_mm = np.zeros((3 * k, 3 * k))
             for j in range(k):
@@ -196,21 +198,33 @@ class Reactivation:
             slots = st.add_landmarks(m, P_mm, np.zeros((3 * k, st.n)))
         else:
             assert st.N is not None
-            P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, st.n_vehicle_states)
+            P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, observer_groups(st, book, ids))
             slots = st.add_landmarks(m, P_mm, P_mx, N_p=N_m.reshape(3 * k, -1))
         book.readmit(ids)
         return slots
 
 
-def _anchored(st: JointState, run: VehicleRun, m_nav_m: F64, C: F64, N_m: F64 | None = None) -> I64:
+def observer_groups(st: JointState, book: LandmarkBook, ids: I64) -> list[tuple[I64, I64]]:
+    """The landmarks `ids` by the group of vehicles their observers belong to (those linked
+    by landmarks they observed, `LandmarkBook.group`): (positions in ids, the group's state
+    rows) per group, what `gauge.gauge_correlated` reads each landmark's gauge error from."""
+    groups = np.array([book.group(int(b)) for b in book.observers[ids]], dtype=np.int64)
+    return [(np.flatnonzero(groups == g), st.vehicle_rows(int(g))) for g in np.unique(groups)]
+
+
+def _anchored(
+    st: JointState, run: VehicleRun, m_nav_m: F64, C: F64, N_m: F64 | None = None,
+    groups: list[tuple[I64, I64]] | None = None,
+) -> I64:  # fmt: skip
     """Landmarks m (k, 3) with covariances C (k, 3, 3), independent of the state, written
     relative to a new clone of run's vehicle pose: theta = f(m, a), P_tt = T_m C T_m^T +
-    T_a P_aa T_a^T, P_tx = T_a P_ax; gauge rows T_m N_m + T_a N_a (N_m (k, 3, g): m's)."""
+    T_a P_aa T_a^T, P_tx = T_a P_ax; gauge rows T_m N_m + T_a N_a (N_m (k, 3, g): m's, their
+    gauge error read from the vehicles of `groups`, `observer_groups`)."""
     vin = run.vin
     pose = VehiclePose.of(st, vin)
     gauge = None
-    if N_m is not None and st.N is not None:  # before the clone: its columns follow below
-        P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, st.n_vehicle_states)
+    if N_m is not None and st.N is not None and groups is not None:  # before the clone
+        P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, groups)
         gauge = P_mm, np.concatenate([P_mx, P_mx[:, pose.index] @ pose.J.T], axis=1), N_m
     key, a_rows = pose.clone(st)
     R_cb, t_bc = vin.obs.R_cam_body[0], vin.obs.t_body_cam[0]

@@ -257,6 +257,12 @@ class JointState:
         M = self.landmarks_nav(slots)[1]
         return M @ P_cc @ np.swapaxes(M, 1, 2)
 
+    def vehicle_rows(self, bits: int) -> I64:
+        """State rows of the vehicles whose bits are set in `bits` (bit i: the i-th vehicle,
+        the landmark book's numbering), in the state's order."""
+        blocks = [vb.index for i, vb in enumerate(self.vehicles.values()) if bits >> i & 1]
+        return np.concatenate(blocks) if blocks else np.zeros(0, dtype=np.int64)
+
     def vehicle_x(self, name: str) -> F64:
         vb = self.vehicles[name]
         return self.x[vb.start : vb.start + vb.model.n]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -128,20 +130,32 @@ def test_constrained_updates_add_no_information_about_the_gauge():
     assert np.all(np.diag(_gauge_information(st)) > 1.01 * np.diag(after))
 
 
-@pytest.mark.parametrize("vehicles", [1, 2])
-def test_a_point_put_back_adds_no_information_about_the_gauge(vehicles):
-    """Whatever the updates made of the correlations: the gauge error the vehicles' blocks
-    read is the one the point shares (gauge.gauge_correlated's L N = I)."""
-    st = _joint_state(vehicles)
-    _constrained_steps(st, 5)
-    before = _gauge_information(st)
-    k = 2
+def _points(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """k points m (k, 3), their gauge rows N_m (k, 3, 4) and marginals C (k, 3, 3)."""
     m = RNG.normal(0, 30, (k, 3))
     N_m = np.zeros((k, 3, 4))
     N_m[:, :, :3] = np.eye(3)
     N_m[:, 0, 3], N_m[:, 1, 3] = -m[:, 1], m[:, 0]
-    C = np.broadcast_to(np.eye(3) * 25.0, (k, 3, 3))
-    P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, st.n_vehicle_states)
+    return m, N_m, np.broadcast_to(np.eye(3) * 25.0, (k, 3, 3))
+
+
+@pytest.mark.parametrize(
+    "vehicles, observers",
+    [(1, [0b1, 0b1]), (2, [0b11, 0b11]), (2, [0b1, 0b1]), (2, [0b1, 0b10])],
+    ids=["one", "both-read-both", "both-read-first", "one-point-each"],
+)
+def test_a_point_put_back_adds_no_information_about_the_gauge(vehicles, observers):
+    """Whatever the updates made of the correlations and whichever vehicles' blocks each
+    point's gauge error is read from (its observers, a group per set of them): it is one the
+    point shares (gauge.gauge_correlated's L N = I)."""
+    st = _joint_state(vehicles)
+    _constrained_steps(st, 5)
+    before = _gauge_information(st)
+    k = 2
+    m, N_m, C = _points(k)
+    masks = np.array(observers)
+    groups = [(np.flatnonzero(masks == b), st.vehicle_rows(int(b))) for b in np.unique(masks)]
+    P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, groups)
     # its marginals are the ones asked for
     for j in range(k):
         np.testing.assert_allclose(P_mm[3 * j : 3 * j + 3, 3 * j : 3 * j + 3], C[j], atol=1e-9)
@@ -154,6 +168,44 @@ def test_a_point_put_back_adds_no_information_about_the_gauge(vehicles):
     st2.add_landmarks(m, P_ind, np.zeros((3 * k, st2.n)), N_p=N_m.reshape(3 * k, 4))
     # (each point tells 1 / 25 m^-2 of the team's north position)
     assert _gauge_information(st2)[0, 0] - before2[0, 0] > 0.9 * k / 25.0
+
+
+def test_a_point_put_back_is_tied_only_to_the_vehicles_that_saw_it():
+    """Two vehicles that never shared a landmark have a gauge each and no correlation: a
+    point the first one observed, put back, is correlated with it alone, and its later
+    observation by the first one leaves the second one's estimate as it was. Read from every
+    vehicle's blocks, the point is tied to the second one too, and the same observation
+    moves it."""
+    st = _joint_state(2)  # the landmarks come from "uav"'s pose; "uav2" shares nothing
+    settings, gamma = FilterSettings("ekf"), GammaPolicy(FilterSettings("ekf"))
+    other = st.vehicles["uav2"].index
+    own = np.setdiff1d(np.arange(st.n), other)
+    for _ in range(5):  # "uav" flies and observes its own landmarks
+        x_new, F, Q = INS.step(st.vehicle_x("uav"), _input(INS, RNG), 0.05)
+        st.predict("uav", x_new, F, Q)
+        H = constrain(RNG.normal(size=(6, len(own))), st.N[own])
+        st.update(settings, gamma, RNG.normal(size=6), np.zeros(6), H, own, np.eye(6) * 0.1)
+    assert np.all(st.P[np.ix_(other, own)] == 0.0)
+    m, N_m, C = _points(1)
+    z = RNG.normal(size=3)
+
+    def put_back_and_observe(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s = copy.deepcopy(st)
+        P_mm, P_mx = gauge_correlated(s.P, s.N, N_m, C, [(np.arange(1), rows)])
+        slots = s.add_landmarks(m, P_mm, P_mx, N_p=N_m.reshape(3, 4))
+        seen = np.concatenate([s.vehicles["uav"].index, s.landmark_columns(slots).ravel()])
+        H = constrain(np.ones((3, len(seen))), s.N[seen])
+        s.update(settings, gamma, z, np.zeros(3), H, seen, np.eye(3) * 0.1)
+        return P_mx[:, other], s.x[other], s.P[np.ix_(other, other)]
+
+    P_mo, x_o, P_oo = put_back_and_observe(st.vehicle_rows(0b1))
+    assert np.all(P_mo == 0.0)
+    np.testing.assert_array_equal(x_o, st.x[other])
+    np.testing.assert_array_equal(P_oo, st.P[np.ix_(other, other)])
+    P_mo, x_o, P_oo = put_back_and_observe(np.arange(st.n_vehicle_states))  # every vehicle
+    assert np.abs(P_mo).max() > 1e-6
+    assert np.abs(x_o - st.x[other]).max() > 1e-6
+    assert not np.array_equal(P_oo, st.P[np.ix_(other, other)])
 
 
 def test_the_down_translation_leaves_the_gauge_with_a_ground_robot():

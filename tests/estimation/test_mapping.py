@@ -93,3 +93,22 @@ def test_evicted_landmarks_keep_their_gaussian_and_come_back_in_the_archive():
     np.testing.assert_allclose(a.landmark_map().std_m[1], np.sqrt(5 * np.diag(cov[1])))
     book.readmit(np.array([1]))
     assert list(book.slot_ids) == [0, 2, 1] and list(book.reactivations[:3]) == [0, 1, 0]
+
+
+def test_vehicles_are_grouped_by_the_landmarks_they_observed():
+    """A group is the vehicles linked by landmarks they both observed, directly or through
+    others (the team's gauges, gauge.py); until then each vehicle is a group of its own."""
+    book = LandmarkBook(4)
+    desc = np.zeros((2, 128), dtype=np.uint8)
+    views = np.tile([0.0, 0.0, -1.0], (2, 1))
+    a = book.add(desc, 0, 100, np.full(2, -1), views, np.full(2, TEN_M))  # vehicle 0's
+    b = book.add(desc, 2, 100, np.full(2, -1), views, np.full(2, TEN_M))  # vehicle 2's
+    assert [book.group(1 << i) for i in range(4)] == [0b0001, 0b0010, 0b0100, 0b1000]
+    book.observe(a[:1], 1, 200, views[:1], TEN_M)  # vehicle 1 sees one of vehicle 0's
+    assert book.group(0b0001) == book.group(0b0010) == 0b0011
+    assert book.group(0b0100) == 0b0100 and book.group(0b1000) == 0b1000
+    assert book.group(int(book.observers[a[1]])) == 0b0011  # seen by 0 alone: 0's group
+    book.observe(b[1:], 1, 300, views[:1], TEN_M)  # and one of vehicle 2's: one group of three
+    assert {book.group(1 << i) for i in range(3)} == {0b0111}
+    assert book.group(0b1000) == 0b1000
+    assert book.group(0) == 0b1111  # no observer (a prior map's landmark): the whole team
