@@ -45,9 +45,9 @@ PnP fit to look-alikes does not repeat. A check that agrees confirms the vehicle
 
 A vehicle too uncertain for its windows (position standard deviation above
 `uncertain_sigma_ratio` times the median depth of its frame, `linearisation.too_uncertain`:
-after a long blackout) is checked at every frame, and a pose its covariance allows is taken
-at once (`Contradiction.lost` false; `UnknownPoseLocaliser.relocalise(uncertain=True)`, a
-`recognition` event), as an unknown pose is localised in the shared map, in place of the
+after a long blackout) is checked at every frame, and the inliers of a pose its covariance
+allows update it at once (`Contradiction.lost` false, with the pose's weight against the
+filter's; `UnknownPoseLocaliser.relocalise`, a `recognition` event), in place of the
 windows' associations: windows that wide can take look-alikes (the loop UAV after a 45 s
 blackout: at 50.2 s the iterated update had it 7 m from the truth at a 27 m sigma, at
 50.5 s its windows had taken wrong landmarks and put it 135 m off at 8 m; the check had
@@ -189,19 +189,22 @@ def forget_mapped(
 class Contradiction:
     """A check's finding that the map by appearance contradicts a vehicle's pose (`lost`) or
     locates a vehicle too uncertain for its windows (not `lost`): `why` (the lost event's
-    text), the pose it found (`found`) and its inliers' book ids `ids` (k,)."""
+    text), the pose it found (`found`) and its inliers' book ids `ids` (k,); not lost, the
+    `weight` (6, 6) of the pose found against the filter's, P (P + C)^-1 with P the
+    filter's pose covariance and C the pose found's (position, Euler angles)."""
 
     why: str
     found: Localisation
     ids: I64
     lost: bool = True
+    weight: F64 | None = None
 
     def without_forgotten(self, book: LandmarkBook) -> Contradiction:
         """The same, less the inliers `book` has forgotten since (`forget_mapped`)."""
         keep = ~book.forgotten[self.ids]
         f = self.found
         found = replace(f, landmark_rows=f.landmark_rows[keep], match_rows=f.match_rows[keep])
-        return Contradiction(self.why, found, self.ids[keep], self.lost)
+        return Contradiction(self.why, found, self.ids[keep], self.lost, self.weight)
 
 
 class PlaceRecognition:
@@ -258,11 +261,11 @@ class PlaceRecognition:
         if located is None:
             self.confirmation.drop(name)
             return None
-        found, ids, d, chi2, tol_m = located
+        found, ids, d, chi2, tol_m, weight = located
         if chi2 <= s.gate_chi2:
             self.confirmation.drop(name)
             if uncertain:  # found by appearance, as an unknown pose in the shared map is
-                return Contradiction("", found, ids, lost=False)  # (one frame)
+                return Contradiction("", found, ids, lost=False, weight=weight)  # (one frame)
             run.verified_ns = frame.stamp_ns
             return None
         if not self.confirmation.confirmed(name, d[:3], float(d[5]), tol_m):
@@ -278,10 +281,11 @@ class PlaceRecognition:
 
     def _locate(
         self, run: VehicleRun, frame: FrameMatches, pose: VehiclePose
-    ) -> tuple[Localisation, I64, F64, float, float] | None:
+    ) -> tuple[Localisation, I64, F64, float, float, F64] | None:
         """The frame located among the landmarks near the vehicle: (the localisation, its
         inliers' book ids, the offset d (6,) of its pose from the filter's, d's chi-square,
-        the confirmation tolerance in metres); None when PnP finds no pose."""
+        the confirmation tolerance in metres, the pose's weight against the filter's,
+        `Contradiction.weight`); None when PnP finds no pose."""
         s = self.settings
         ids, m = mapped_landmarks(self.state, self.book)
         cov_p = pose.cov
@@ -315,5 +319,6 @@ class PlaceRecognition:
             [found.p_nav_m - pose.p_nav_m, (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi]
         )
         chi2 = float(d @ np.linalg.solve(cov_p + C_pnp, d))
+        weight = np.linalg.solve(cov_p + C_pnp, cov_p).T  # P (P + C)^-1, both symmetric
         ranges_in = np.linalg.norm(m[rows] - found.p_nav_m, axis=1)
-        return found, ids[rows], d, chi2, self.confirmation.tolerance_m(ranges_in)
+        return found, ids[rows], d, chi2, self.confirmation.tolerance_m(ranges_in), weight

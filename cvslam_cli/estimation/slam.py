@@ -254,7 +254,7 @@ class Slam:
             out = self._localise(run, frame, contradiction)
         elif recognised is not None:  # too uncertain for its windows: found by appearance
             out = self.localiser.relocalise(
-                run, frame, recognised.found, recognised.ids, uncertain=True
+                run, frame, recognised.found, recognised.ids, weight=recognised.weight
             )
             localising = True
         else:

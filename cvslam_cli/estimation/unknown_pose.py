@@ -135,18 +135,29 @@ class UnknownPoseLocaliser:
         frame: FrameMatches,
         found: Localisation,
         ids: I64,
-        uncertain: bool = False,
+        weight: F64 | None = None,
     ) -> FrameOutcome:
         """Run's vehicle, just lost because the map by appearance contradicted its pose
         (`relocalisation.PlaceRecognition`), moved at once to the pose that map gave
         (`found`, confirmed over frames already; its inliers' book ids `ids`), as a
-        confirmed localisation is (module docstring, step 4); `uncertain`: not lost but too
-        uncertain for its windows (`relocalisation.py`), logged as a `recognition`."""
+        confirmed localisation is (module docstring, step 4). With `weight` (6, 6; the
+        check's `Contradiction.weight`): not lost but too uncertain for its windows
+        (`relocalisation.py`), logged as a `recognition`. Such a vehicle keeps its pose and
+        covariance, and the inliers update it as a frame's associations do (iterated: it is
+        too uncertain for one linearisation), unless the pose found carries all there is
+        (`DOMINANT_WEIGHT` in every direction of position and heading: after a long
+        blackout, 58 m of standard deviation against a pose found to decimetres), where the
+        vehicle is moved to it first, for the update's linearisation. Moved there while its
+        own pose still counts, the vehicle took the pose found's whole error under a
+        covariance only the update shrank (`ugv2_yard` alone, 0.2 m of standard deviation
+        among nearby walls: BENCHMARKS.md, "Fuse: a pose found by appearance, weighed
+        against the filter's")."""
         pose = VehiclePose.of(self.state, run.vin)
         e0 = pose.euler_rad
         euler = e0 + (found.euler_rad - e0 + np.pi) % (2 * np.pi) - np.pi
         d = found.p_nav_m - pose.p_nav_m
-        return self._accept(run, frame, found, ids, euler, d, uncertain)
+        keep = weight is not None and not pose_found_dominates(weight)
+        return self._accept(run, frame, found, ids, euler, d, weight is not None, keep)
 
     def _sources(self, ids: I64) -> I64:
         """(k,) where each landmark of `ids` is: 0 in the state, 1 a prior-map landmark not
@@ -168,10 +179,12 @@ class UnknownPoseLocaliser:
         euler: F64,
         d: F64,
         uncertain: bool = False,
+        keep: bool = False,
     ) -> FrameOutcome:
-        """The vehicle moved to the pose found, the inliers (book ids `ids`) out of the
-        state (the prior map's, or evicted) brought in as many as fit, and one update with
-        every inlier in the state (module docstring, step 4)."""
+        """The vehicle moved to the pose found (unless it `keep`s its own: `relocalise`),
+        the inliers (book ids `ids`) out of the state (the prior map's, or evicted) brought
+        in as many as fit, and one update with every inlier in the state (module docstring,
+        step 4; iterated for a vehicle that keeps its pose)."""
         s, st, book, vin = self.settings, self.state, self.book, run.vin
         source = self._sources(ids)
         prior = VehiclePose.of(st, vin)
@@ -180,8 +193,9 @@ class UnknownPoseLocaliser:
         # which forgot them too (relocalisation.lost_variances)
         if run.lost_ns is None:
             euler = np.array([prior.euler_rad[0], prior.euler_rad[1], euler[2]])
-        st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
-        st.reset_gauge(vin.name)
+        if not keep:
+            st.x[prior.index] = vin.model.with_pose(prior.x, found.p_nav_m, euler)
+            st.reset_gauge(vin.name)
         outside = np.flatnonzero(source > 0)
         if len(outside):
             protected = np.flatnonzero(np.isin(book.slot_ids, ids[source == 0]))
@@ -202,15 +216,20 @@ class UnknownPoseLocaliser:
                 )
         # the inliers in the state now (an inlier that did not fit is left out)
         slot_of = {int(i): k for k, i in enumerate(book.slot_ids)}
-        keep = np.array([int(i) in slot_of for i in ids], dtype=bool)
-        slots = np.array([slot_of[int(i)] for i in ids[keep]], dtype=np.int64)
-        match_rows = found.match_rows[keep]
+        inside = np.array([int(i) in slot_of for i in ids], dtype=bool)
+        slots = np.array([slot_of[int(i)] for i in ids[inside]], dtype=np.int64)
+        match_rows = found.match_rows[inside]
         k = len(slots)
         pose = VehiclePose.of(st, vin)  # relinearised
         pred, _ = self.updater.predict(vin, pose, slots)
-        res = self.updater.update(
-            pose.index, pred, np.arange(k), frame.z[match_rows], self.bounded()
-        )
+        if keep:
+            res, _ = self.updater.iterated_update(
+                vin, pred, np.arange(k), frame.z[match_rows], self.bounded()
+            )
+        else:
+            res = self.updater.update(
+                pose.index, pred, np.arange(k), frame.z[match_rows], self.bounded()
+            )
         ids_used = book.slot_ids[slots]
         types = classify(
             np.zeros(len(frame), dtype=bool), match_rows, book.last_seen_ns[ids_used, run.index],
@@ -228,8 +247,9 @@ class UnknownPoseLocaliser:
             message = (
                 f"found by appearance at a position sigma of {sigma_m:.1f} m (too uncertain "
                 f"for its windows): PnP on {len(found.match_rows)} of {found.candidates} "
-                f"descriptor pairs, reprojection RMS {found.rms_px:.2f} px, moved "
-                f"{np.linalg.norm(d):.1f} m"
+                f"descriptor pairs, reprojection RMS {found.rms_px:.2f} px, "
+                + ("its own pose kept, " if keep else "moved to it, ")
+                + f"{np.linalg.norm(d):.1f} m from it"
             )
         else:
             kind = "localisation" if run.lost_ns is None else "relocalisation"
@@ -260,3 +280,17 @@ class UnknownPoseLocaliser:
             f"{pairs}, reprojection RMS {found.rms_px:.2f} px, moved "
             f"{np.linalg.norm(d):.1f} m from its prior"
         )
+
+
+# A pose found by appearance replaces a vehicle's own for the update's linearisation where it
+# carries all there is: its weight against the filter's pose, P (P + C)^-1, at least this in
+# every direction of position and heading (the filter's variance 99x the pose found's);
+# below, the vehicle's own pose counts and it is kept (`relocalise`).
+DOMINANT_WEIGHT = 0.99
+
+
+def pose_found_dominates(weight: F64) -> bool:
+    """Whether a pose found with `weight` (6, 6: position, Euler angles) against the
+    filter's carries all there is (`DOMINANT_WEIGHT`)."""
+    rows = [0, 1, 2, 5]  # position and heading: what a pose found replaces (`_accept`)
+    return bool(np.min(np.linalg.eigvals(weight[np.ix_(rows, rows)]).real) >= DOMINANT_WEIGHT)

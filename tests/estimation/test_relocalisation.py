@@ -22,6 +22,7 @@ from cvslam_cli.estimation.reactivation import MAX_REACTIVATION_STD_M
 from cvslam_cli.estimation.relocalisation import forget_mapped, lost_variances
 from cvslam_cli.estimation.settings import RelocalisationSettings
 from cvslam_cli.estimation.state import JointState
+from cvslam_cli.estimation.unknown_pose import pose_found_dominates
 from cvslam_cli.geometry.rotations import interpolate_positions
 from tests.scenarios import (
     MC_FILTER_OVERRIDES,
@@ -185,3 +186,20 @@ def test_a_vehicle_too_uncertain_for_its_windows_is_found_by_appearance(tmp_path
     print(f"\nafter a 45 s blackout: final {err[-1]:.2f} m; " + found[0]["detail"])
     assert found and "found by appearance" in found[0]["detail"]
     assert err[t_s > 52.0].max() < 1.5 and err[-1] < 0.5
+
+
+def test_a_pose_found_replaces_the_filters_only_where_it_carries_all_there_is():
+    """The weight P (P + C)^-1 of a pose found against the filter's pose: at least 0.99 in
+    every direction of position and heading (the blackout above: the filter's variance
+    thousands of times the pose found's) moves the vehicle to it; a pose found about as
+    certain as the filter's in one direction (a ground robot among nearby walls) leaves the
+    vehicle its own pose for the update (unknown_pose.relocalise)."""
+    P = np.diag([58.0**2] * 3 + [0.01, 0.01, 0.2])
+    C = np.diag([0.3**2] * 3 + [0.01, 0.01, 0.002])
+    weight = np.linalg.solve(P + C, P).T
+    assert pose_found_dominates(weight)
+    P[5, 5] = C[5, 5]  # the heading known as well as the pose found knows it
+    assert not pose_found_dominates(np.linalg.solve(P + C, P).T)
+    # roll and pitch do not count: a pose found replaces position and heading only
+    P = np.diag([58.0**2] * 3 + [1e-6, 1e-6, 0.2])
+    assert pose_found_dominates(np.linalg.solve(P + C, P).T)
