@@ -223,7 +223,8 @@ def _anchored(
     vin = run.vin
     pose = VehiclePose.of(st, vin)
     gauge = None
-    if N_m is not None and st.N is not None and groups is not None:  # before the clone
+    if N_m is not None and st.N is not None:  # before the clone: its columns follow below
+        assert groups is not None, "a landmark put back with a gauge needs its groups"
         P_mm, P_mx = gauge_correlated(st.P, st.N, N_m, C, groups)
         gauge = P_mm, np.concatenate([P_mx, P_mx[:, pose.index] @ pose.J.T], axis=1), N_m
     key, a_rows = pose.clone(st)

@@ -244,12 +244,12 @@ class UnknownPoseLocaliser:
         if uncertain:
             kind = "recognition"
             sigma_m = float(np.sqrt(np.linalg.eigvalsh(prior.cov[:3, :3])[-1]))
+            dist_m = float(np.linalg.norm(d))
             message = (
                 f"found by appearance at a position sigma of {sigma_m:.1f} m (too uncertain "
                 f"for its windows): PnP on {len(found.match_rows)} of {found.candidates} "
                 f"descriptor pairs, reprojection RMS {found.rms_px:.2f} px, "
-                + ("its own pose kept, " if keep else "moved to it, ")
-                + f"{np.linalg.norm(d):.1f} m from it"
+                + (f"{dist_m:.1f} m from its own pose, kept" if keep else f"moved {dist_m:.1f} m")
             )
         else:
             kind = "localisation" if run.lost_ns is None else "relocalisation"
