@@ -355,6 +355,17 @@ class RelocalisationConfig:
 
 
 @dataclass(frozen=True)
+class CalibrationConfig:
+    """The stereo rigs' calibration, estimated (estimation/rig_calibration.py):
+    `estimate_right_cx` runs a calibration pass of the filter with each vehicle's right
+    principal point u0 a state of its block (prior standard deviation `right_cx_sigma_px`),
+    then the run with each rig corrected by its estimate."""
+
+    estimate_right_cx: bool = False
+    right_cx_sigma_px: float = opt(1.0, lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
 class FuseConfig:
     """`cvslam fuse`. `prior_map`: a map saved by an earlier run to start from (its run
     directory, whose `fuse/map.npz` is read, or a `map.npz`; empty: none)."""
@@ -370,6 +381,7 @@ class FuseConfig:
     window: WindowConfig = opt(WindowConfig())
     divergence: DivergenceConfig = opt(DivergenceConfig())
     relocalisation: RelocalisationConfig = opt(RelocalisationConfig())
+    calibration: CalibrationConfig = opt(CalibrationConfig())
 
 
 @dataclass(frozen=True)

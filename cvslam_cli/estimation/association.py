@@ -133,28 +133,25 @@ def camera_depths(obs: StereoObservationModel, p_nav_m: F64, euler_rad: F64, m_n
 
 
 def predict_landmarks(
-    obs: StereoObservationModel,
-    p_nav_m: F64,
-    euler_rad: F64,
-    J_pose: F64,
+    pose: VehiclePose,
     slots: I64,
     m_nav_m: F64,
-    P_vv: F64,
     P_vm: F64,
     P_mm: F64,
     R: F64,
     M: F64 | None = None,
     noise_scale: F64 | None = None,
 ) -> LandmarkPrediction:
-    """Predict landmarks m (k, 3) seen from pose (p, Psi), whose d(p, Psi)/d x_v is J_pose
-    (6, n_v). P_vv (n_v, n_v), P_vm (k, n_v, d), P_mm (k, d, d): covariance blocks of the
-    landmarks' d state columns, with d m / d columns = M (k, 3, d) (None: the identity, the
-    columns are m); H_m (k, 4, d) is w.r.t. those columns; R (4, 4) the pixel noise, times
-    `noise_scale` (k,) per landmark when given (`noise_scale`)."""
-    z, H_pose, H_m = obs.predict(p_nav_m, euler_rad, m_nav_m)
+    """Predict landmarks m (k, 3) seen from the vehicle at `pose` (its observation model and
+    d z / d x_v, `VehiclePose.vehicle_jacobian`). P_vm (k, n_v, d), P_mm (k, d, d):
+    covariance blocks of the landmarks' d state columns, with d m / d columns = M (k, 3, d)
+    (None: the identity, the columns are m); H_m (k, 4, d) is w.r.t. those columns; R (4, 4)
+    the pixel noise, times `noise_scale` (k,) per landmark when given (`noise_scale`)."""
+    obs, P_vv = pose.obs, pose.P_vv
+    z, H_pose, H_m = obs.predict(pose.p_nav_m, pose.euler_rad, m_nav_m)
     if M is not None:
         H_m = H_m @ M
-    H_v = H_pose @ J_pose
+    H_v = pose.vehicle_jacobian(H_pose)
     HvPvm = H_v @ P_vm  # (k, 4, d)
     cross = HvPvm @ np.swapaxes(H_m, 1, 2)
     S = (
@@ -468,13 +465,12 @@ def record_observations(
 
 def predict_in_state(
     state: JointState,
-    vin: VehicleInput,
     pose: VehiclePose,
     slots: I64,
     R_hat: F64,
     noise_scale: F64 | None = None,
 ) -> tuple[LandmarkPrediction, LandmarkErrors]:
-    """The state's landmarks in `slots` predicted into vin's images from its pose, with
+    """The state's landmarks in `slots` predicted into the images of the vehicle at `pose`, with
     their innovation covariances (R_hat (4, 4) the pixel noise as the filter scales it, times
     `noise_scale` (k,) per landmark when given); also their covariance blocks with the
     vehicle (`LandmarkErrors`, over their columns in the state, `JointState.landmark_columns`:
@@ -484,8 +480,5 @@ def predict_in_state(
     P_vm = P[pose.index[:, None, None], cols[None, :, :]].transpose(1, 0, 2)
     P_mm = P[cols[:, :, None], cols[:, None, :]]
     m, M = state.landmarks_nav(slots)
-    pred = predict_landmarks(
-        vin.obs, pose.p_nav_m, pose.euler_rad, pose.J, slots, m, pose.P_vv, P_vm, P_mm, R_hat, M,
-        noise_scale,
-    )  # fmt: skip
+    pred = predict_landmarks(pose, slots, m, P_vm, P_mm, R_hat, M, noise_scale)
     return pred, LandmarkErrors(P_vm, P_mm)

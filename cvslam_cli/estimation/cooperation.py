@@ -88,7 +88,7 @@ class Cooperation:
         if not len(front):
             return
         scale = noise_scale(self.book, ids, other.index, s.other_vehicle_noise_ratio)
-        pred, errors = self.updater.predict(vin, pose, slots[front], scale)
+        pred, errors = self.updater.predict(pose, slots[front], scale)
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2,
             s.other_vehicle_descriptor_ratio, s.max_descriptor_distance,

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from cvslam_cli.estimation.observation import RightCxShift
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.features import FeatureSet
 
@@ -22,7 +23,10 @@ class FrameMatches:
     true_id (M,) the simulator's landmark ids (-1 unknown); depth_sigma_ratio (M,) the depth
     standard deviation of each point over its depth; can_start (M,) whether a match's point
     can start a landmark (finite, in front, depth_sigma_ratio below the configured bound);
-    octave (M,) the left keypoint's SIFT octave (0: the image's own resolution)."""
+    octave (M,) the left keypoint's SIFT octave (0: the image's own resolution);
+    dp_cam_du (M, 3) d p_cam / d du where the vehicle's rig's right principal point is
+    corrected or estimated by du (`rig_calibration.py`; the points then moved to it), else
+    None."""
 
     stamp_ns: int
     index: int
@@ -34,13 +38,25 @@ class FrameMatches:
     depth_sigma_ratio: F64
     can_start: NDArray[np.bool_]
     octave: I64
+    dp_cam_du: F64 | None = None
 
     @staticmethod
-    def of(fs: FeatureSet, index: int, stamp_ns: int, max_depth_sigma_ratio: float) -> FrameMatches:
+    def of(
+        fs: FeatureSet,
+        index: int,
+        stamp_ns: int,
+        max_depth_sigma_ratio: float,
+        shift: RightCxShift | None = None,
+    ) -> FrameMatches:
+        """Frame `index` of `fs`; with `shift`, its points moved to the rig's corrected or
+        estimated right principal point (`observation.RightCxShift`)."""
         sl = fs.frame_matches(index)
         ml, mr = fs.match_left[sl], fs.match_right[sl]
         p_cam = fs.match_p_cam_m[sl]
         cov_cam = fs.match_cov_cam_m2[sl]
+        dp_cam_du = None
+        if shift is not None:
+            p_cam, cov_cam, dp_cam_du = shift.apply(p_cam, cov_cam)
         depth = p_cam[:, 2]
         sigma = np.sqrt(np.maximum(cov_cam[:, 2, 2], 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -57,6 +73,7 @@ class FrameMatches:
             depth_sigma_ratio=depth_sigma_ratio,
             can_start=can_start,
             octave=fs.left_octave[ml].astype(np.int64),
+            dp_cam_du=dp_cam_du,
         )
 
     def __len__(self) -> int:

@@ -88,7 +88,7 @@ class NewLandmarks:
         ok = in_view_rows(vin, pose.p_nav_m, pose.euler_rad, cand.m)
         if len(ok) == 0:
             return none
-        z, _, H_m = vin.obs.predict(pose.p_nav_m, pose.euler_rad, cand.m[ok])
+        z, _, H_m = pose.obs.predict(pose.p_nav_m, pose.euler_rad, cand.m[ok])
         R4 = np.eye(4) * self.settings.pixel_sigma_px**2
         S = H_m @ cand.cov[ok] @ np.swapaxes(H_m, 1, 2) + R4
         pred = LandmarkPrediction(ok, z, H_m, H_m, S)
@@ -137,11 +137,12 @@ class NewLandmarks:
         vin = run.vin
         pose = VehiclePose.of(self.state, vin)
         p_cam, cov_cam = frame.p_cam_m[pick], frame.cov_cam_m2[pick]
+        dp_du = None if frame.dp_cam_du is None else frame.dp_cam_du[pick]
         if self.state.coords.anchored:
             key, since_ns = self._anchors.get(run.index, (None, frame.stamp_ns))
             if frame.stamp_ns - since_ns > self.settings.anchor_span_ns:
                 key, since_ns = None, frame.stamp_ns
-            slots, new_key = _anchored(self.state, vin, pose, p_cam, cov_cam, key)
+            slots, new_key = _anchored(self.state, vin, pose, p_cam, cov_cam, key, dp_du)
             self._anchors[run.index] = (new_key, since_ns if new_key == key else frame.stamp_ns)
             if new_key != key:  # a new clone: the lightest anchors hand theirs over to it
                 hand_over(
@@ -150,7 +151,7 @@ class NewLandmarks:
                     self.settings.reanchor_max_landmarks,
                 )  # fmt: skip
         else:
-            slots = _cartesian(self.state, vin, pose, p_cam, cov_cam)
+            slots = _cartesian(self.state, vin, pose, p_cam, cov_cam, dp_du)
         ids = self.book.add(
             frame.desc[pick],
             run.index,
@@ -187,13 +188,20 @@ class NewLandmarks:
 
 
 def _cartesian(
-    st: JointState, vin: VehicleInput, pose: VehiclePose, p_cam_m: F64, cov_cam_m2: F64
+    st: JointState,
+    vin: VehicleInput,
+    pose: VehiclePose,
+    p_cam_m: F64,
+    cov_cam_m2: F64,
+    dp_cam_du: F64 | None = None,
 ) -> I64:
     """Cartesian landmarks from points p_cam_m (k, 3) in the left camera with covariances
-    cov_cam_m2 (k, 3, 3) (module docstring: m = g(x_v, p_cam))."""
+    cov_cam_m2 (k, 3, 3) (module docstring: m = g(x_v, p_cam)); dp_cam_du (k, 3): how the
+    points move with the vehicle's estimate of its rig's right principal point (None: they
+    do not; `VehiclePose.point_jacobian`)."""
     m, J_pose, J_pc = vin.obs.landmark_jacobians(pose.p_nav_m, pose.euler_rad, p_cam_m)
     k = len(m)
-    Jx = (J_pose @ pose.J).reshape(3 * k, len(pose.index))  # d m / d x_v, (3k, n_v)
+    Jx = pose.point_jacobian(J_pose, J_pc, dp_cam_du).reshape(3 * k, len(pose.index))
     P_mx = Jx @ st.P[pose.index, :]
     P_mm = P_mx[:, pose.index] @ Jx.T
     _add_diagonal_blocks(P_mm, J_pc @ cov_cam_m2 @ J_pc.T)
@@ -207,13 +215,15 @@ def _anchored(
     p_cam_m: F64,
     cov_cam_m2: F64,
     anchor_key: int | None,
+    dp_cam_du: F64 | None = None,
 ) -> tuple[I64, int]:
     """Anchored inverse-depth landmarks (`landmark_coordinates.py`) from the same points,
     relative to the anchor `anchor_key` (None, or one no longer in the state: a new clone of
     the pose (p, Psi) = J x_v, P_aa = J P_vv J^T, P_ax = J P_v). theta = f(x_v, x_a, p_cam)
     through the Cartesian point, augmented like it (P_tx = F P_(v,a),x, P_tt = F P F^T +
-    F_c C_cam F_c^T); from a fresh clone theta depends on p_cam only. Returns the slots and
-    the anchor's key."""
+    F_c C_cam F_c^T); from a fresh clone theta depends on p_cam only (and on the rig's
+    right principal point through it, `dp_cam_du`, as in `_cartesian`). Returns the slots
+    and the anchor's key."""
     a_rows = None if anchor_key is None else st.anchor_rows(anchor_key)
     if anchor_key is None or a_rows is None:
         anchor_key, a_rows = pose.clone(st)
@@ -221,13 +231,17 @@ def _anchored(
     m, J_pose, J_pc = vin.obs.landmark_jacobians(pose.p_nav_m, pose.euler_rad, p_cam_m)
     theta, T_m, T_a = AnchoredInverseDepth().from_nav(m, st.x[a_rows], R_cb, t_bc)
     k = len(m)
+    F_c = T_m @ J_pc  # d theta / d p_cam
     F = np.concatenate(
-        [(T_m @ J_pose @ pose.J).reshape(3 * k, len(pose.index)), T_a.reshape(3 * k, 6)], axis=1
+        [
+            pose.point_jacobian(T_m @ J_pose, F_c, dp_cam_du).reshape(3 * k, len(pose.index)),
+            T_a.reshape(3 * k, 6),
+        ],
+        axis=1,
     )
     rows = np.concatenate([pose.index, a_rows])
     P_tx = F @ st.P[rows, :]
     P_tt = P_tx[:, rows] @ F.T
-    F_c = T_m @ J_pc
     _add_diagonal_blocks(P_tt, F_c @ cov_cam_m2 @ np.swapaxes(F_c, 1, 2))
     N_t = st.gauge_rows(F, rows)
     return st.add_landmarks(theta, P_tt, P_tx, anchor_key, R_cb, t_bc, N_p=N_t), anchor_key

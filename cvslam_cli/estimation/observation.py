@@ -78,6 +78,20 @@ class StereoObservationModel:
             and np.all(np.abs(b_cam[1:]) <= tol * np.linalg.norm(b_cam))
         )
 
+    def with_right_cx(self, du_px: float) -> StereoObservationModel:
+        """The model with the right camera's principal point u0 moved by du_px (a correction
+        estimated by the filter, `rig_calibration.py`): it predicts u_r + du_px."""
+        if du_px == 0.0:
+            return self
+        K = self.K.copy()
+        K[1, 0, 2] += du_px
+        return StereoObservationModel(K, self.R_cam_body, self.t_body_cam)
+
+    @cached_property
+    def fx_baseline(self) -> float:
+        """fx b (px m) of a rectified rig: a point's depth is fx b / disparity."""
+        return float(self.K[0, 0, 0] * np.linalg.norm(self.t_body_cam[1] - self.t_body_cam[0]))
+
     def project(self, p_nav_m: F64, euler_rad: F64, m_nav_m: F64) -> F64:
         """(N, 3) landmarks seen from pose (p, Psi) -> z (N, 4) = (u_l, v_l, u_r, v_r): the
         pixels of `predict` without its Jacobians (the same arithmetic, bit for bit), for
@@ -178,3 +192,28 @@ def mean_v_rows(a: F64) -> F64:
     out = a[:, :3].copy()
     out[:, 1] = 0.5 * (a[:, 1] + a[:, 3])
     return out
+
+
+@dataclass(frozen=True)
+class RightCxShift:
+    """Stereo points of a rectified rig, triangulated with its calibrated right principal
+    point, moved to the rig whose right u0 is off by `du_px` (`rig_calibration.py`): the
+    disparity d = fx b / z becomes d + du, so a point p (left camera frame) scales to
+    p' = s p with s = fx b / (fx b + du z), along its left ray. `fx_baseline` fx b (px m)."""
+
+    fx_baseline: float
+    du_px: float
+
+    def apply(self, p_cam_m: F64, cov_cam_m2: F64) -> tuple[F64, F64, F64]:
+        """Points (M, 3) and covariances (M, 3, 3) -> the moved points p', their covariances
+        J C J^T (J = dp'/dp = s I + p ds/dz e_z^T) and dp'/du (M, 3) = -p' z' / (fx b)."""
+        fb, du = self.fx_baseline, self.du_px
+        z = p_cam_m[:, 2]
+        denom = fb + du * z
+        s = fb / denom
+        p_new = p_cam_m * s[:, None]
+        J = s[:, None, None] * np.eye(3)
+        J[:, :, 2] += p_cam_m * (-fb * du / denom**2)[:, None]
+        cov_new = J @ cov_cam_m2 @ np.swapaxes(J, 1, 2)
+        dp_du = -p_new * (p_new[:, 2] / fb)[:, None]
+        return p_new, 0.5 * (cov_new + np.swapaxes(cov_new, 1, 2)), dp_du

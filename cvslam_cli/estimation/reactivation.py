@@ -146,8 +146,8 @@ class Reactivation:
         if not len(ids):
             return none
         C = self.inflated_cov(ids)
-        z, H_pose, H_m = vin.obs.predict(p, euler, book.p_nav_m[ids])
-        H_v = H_pose @ pose.J
+        z, H_pose, H_m = pose.obs.predict(p, euler, book.p_nav_m[ids])
+        H_v = pose.vehicle_jacobian(H_pose)
         scale = noise_scale(book, ids, run.index, s.other_vehicle_noise_ratio)
         S = (
             H_v @ pose.P_vv @ np.swapaxes(H_v, 1, 2)

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -73,9 +73,11 @@ from cvslam_cli.estimation.gauge import constrained
 from cvslam_cli.estimation.landmark_coordinates import coordinates, resolve
 from cvslam_cli.estimation.linearisation import too_uncertain
 from cvslam_cli.estimation.mapping import LandmarkBook
+from cvslam_cli.estimation.motion.calibration import right_cx_row
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
+from cvslam_cli.estimation.observation import RightCxShift
 from cvslam_cli.estimation.octave_noise import OctaveBearingNoise, match_octaves
 from cvslam_cli.estimation.octave_noise import resolve as resolve_octaves
 from cvslam_cli.estimation.prior_map import OFFSET_BLOCK, PriorLandmarks, PriorMap
@@ -125,6 +127,9 @@ class SlamResult:
     # with a prior map: its common offset b (3,) as estimated at the end, and its covariance
     prior_offset_m: F64 | None = None
     prior_offset_cov_m2: F64 | None = None
+    # vehicles whose rig's right principal point was estimated: (its estimate, std) px at the
+    # end (a state of its block, motion/calibration.py; rig_calibration.py)
+    right_cx_px: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def landmarks(self) -> LandmarkMap:
@@ -240,7 +245,10 @@ class Slam:
         """One frame of run's vehicle: the six steps of the module docstring."""
         t_start = time.perf_counter()
         self._predict(run, t_ns)
-        frame = FrameMatches.of(run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio)
+        frame = FrameMatches.of(
+            run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio,
+            self._right_cx_shift(run),
+        )  # fmt: skip
         # the map by appearance against the filter's pose: a vehicle it contradicts is lost
         contradiction = self.recognition.check(run, frame) if run.localised else None
         recognised = None
@@ -279,6 +287,13 @@ class Slam:
             self._window(run, frame, out)
         self._next_candidates(run, frame, out)
         self._record(run, frame, out, lm_std, t_start, prior_used)
+
+    def _right_cx_shift(self, run: VehicleRun) -> RightCxShift | None:
+        """Where run's vehicle corrects or estimates its rig's right principal point, how its
+        frame's stereo points move to it (`observation.RightCxShift`); else None."""
+        if right_cx_row(run.vin.model) is None and run.vin.right_cx_px == 0.0:
+            return None
+        return VehiclePose.of(self.state, run.vin).right_cx_shift()
 
     def _localise(
         self, run: VehicleRun, frame: FrameMatches, contradiction: Contradiction | None
@@ -320,7 +335,7 @@ class Slam:
         book = self.book
         ids_vis = book.slot_ids[visible]
         scale = noise_scale(book, ids_vis, run.index, s.other_vehicle_noise_ratio)
-        pred, errors = self.updater.predict(run.vin, pose, visible, scale)
+        pred, errors = self.updater.predict(pose, visible, scale)
         ratio, frame_wide = descriptor_tests(
             book, ids_vis, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio,
             s.other_vehicle_ratio_over_frame,
@@ -592,9 +607,15 @@ class Slam:
         if self.prior is not None:
             rows = st.vehicles[OFFSET_BLOCK].index
             b, B = st.x[rows].copy(), st.P[np.ix_(rows, rows)].copy()
+        right_cx = {}
+        for vin in self.vehicles:
+            row = right_cx_row(vin.model)
+            if row is not None:
+                i = st.vehicles[vin.name].index[row]
+                right_cx[vin.name] = (float(st.x[i]), float(np.sqrt(st.P[i, i])))
         return SlamResult(
             tracks, self.timeline, self.events.rows, archive, self.divergence,
-            self.updater.gamma.raised_count, _observations(self.runs), b, B,
+            self.updater.gamma.raised_count, _observations(self.runs), b, B, right_cx,
         )  # fmt: skip
 
 
@@ -664,6 +685,7 @@ def merge_results(results: list[SlamResult]) -> SlamResult:
         divergence=min(divergences, key=lambda d: d.stamp_ns) if divergences else None,
         gamma_raised=sum(r.gamma_raised for r in results),
         observations=_merged_observations(results, offsets),
+        right_cx_px={k: v for r in results for k, v in r.right_cx_px.items()},
     )
 
 

@@ -49,6 +49,7 @@ from cvslam_cli.estimation.motion.models import (
 from cvslam_cli.estimation.observation import StereoObservationModel
 from cvslam_cli.estimation.octave_noise import OctaveBearingNoise, match_octaves
 from cvslam_cli.estimation.octave_noise import resolve as resolve_octaves
+from cvslam_cli.estimation.rig_calibration import RightCxEstimates, estimate_right_cx
 from cvslam_cli.estimation.settings import (
     RelocalisationSettings,
     SlamSettings,
@@ -715,22 +716,62 @@ def _filter(
     desc: str,
     progress: bool,
     prior: LandmarkArchive | None = None,
+    right_cx_sigma_px: float = 0.0,
 ) -> tuple[SlamResult, float]:
     """(the filter's result over every frame, its wall time): one filter for all vehicles,
-    or one per vehicle (`single`) with the results merged."""
+    or one per vehicle (`single`) with the results merged; with right_cx_sigma_px > 0, after
+    a calibration pass that estimates each rig's right principal point
+    (`rig_calibration.py`; the result's `right_cx_px`)."""
     n_frames = sum(int(np.sum(v.features.frame_stamp_ns >= v.start_ns)) for v in inputs)
+    calibrating = right_cx_sigma_px > 0
     t0 = time.perf_counter()
     bar = tqdm(
-        total=n_frames, desc=desc, unit="frame", disable=None if progress else True, leave=False
-    )
+        total=n_frames * (2 if calibrating else 1), desc=desc, unit="frame",
+        disable=None if progress else True, leave=False,
+    )  # fmt: skip
+    estimates = None
     # one BLAS thread: the filter's matrices (hundreds of rows) are too small to gain from
     # threads, and OpenBLAS's thread hand-offs made every update ~3x slower on 2 cores
     with bar, threadpool_limits(limits=1, user_api="blas"):
+        if calibrating:
+            estimates = estimate_right_cx(
+                inputs, settings, right_cx_sigma_px, single, prior, bar.update
+            )
+            _log_right_cx(estimates)
+            inputs = estimates.corrected(inputs)
         if single:
             res = merge_results([Slam([v], settings, progress=bar.update).run() for v in inputs])
         else:
             res = Slam(inputs, settings, progress=bar.update, prior=prior).run()
+    if estimates is not None:
+        res = dataclasses.replace(res, right_cx_px=estimates.right_cx_px)
     return res, time.perf_counter() - t0
+
+
+def _check_rectified(inputs: list[VehicleInput]) -> None:
+    """The calibration pass estimates a rectified rig's right principal point only."""
+    for v in inputs:
+        if not v.obs.rectified:
+            raise CvslamError(
+                f"fuse.calibration.estimate_right_cx: vehicle {v.name}'s stereo rig is not "
+                "rectified (only a rectified rig's right principal point is estimated); set it "
+                "to false for this run"
+            )
+
+
+def _log_right_cx(estimates: RightCxEstimates) -> None:
+    """Say what the calibration pass found (`rig_calibration.py`)."""
+    for name, (du, sd) in estimates.right_cx_px.items():
+        log.info(
+            "fuse %s: right camera's principal point u0 estimated %+.3f +- %.3f px by a "
+            "calibration pass (fuse.calibration.estimate_right_cx); the run uses it",
+            name, du, sd,
+        )  # fmt: skip
+    for name in estimates.diverged:
+        log.warning(
+            "fuse %s: the calibration pass diverged; the rig is used as calibrated "
+            "(fuse.calibration.estimate_right_cx)", name,
+        )  # fmt: skip
 
 
 def _refuse_diverged(
@@ -893,7 +934,13 @@ def run(
     settings = slam_settings(cfg.fuse, kind, sigma.sigma_px)
     _log_settings(cfg.fuse, kind, settings, inputs)
     chosen = _log_auto_choices(settings, inputs, single, prior is not None)
-    res, wall = _filter(inputs, settings, single, f"fuse ({kind})", progress, prior)
+    cal = cfg.fuse.calibration
+    if cal.estimate_right_cx:
+        _check_rectified(inputs)
+    res, wall = _filter(
+        inputs, settings, single, f"fuse ({kind})", progress, prior,
+        cal.right_cx_sigma_px if cal.estimate_right_cx else 0.0,
+    )  # fmt: skip
     dr = {v.name: dead_reckoning_track(v) for v in inputs}
     _refuse_diverged(res, inputs, layout, out.name, kind)
     span_s = max((v.features.frame_stamp_ns[-1] - v.start_ns) * 1e-9 for v in inputs)
@@ -917,6 +964,11 @@ def run(
     )
     record = _record_summary(cfg, summary, inputs)
     record["pixel_sigma_px"] = {"value": round(sigma.sigma_px, 4), "source": sigma.source}
+    if res.right_cx_px:  # the calibration pass's estimates (rig_calibration.py)
+        record["right_cx_px"] = {
+            v: {"value": round(du, 4), "std": round(sd, 4)}
+            for v, (du, sd) in res.right_cx_px.items()
+        }
     record.update(chosen)
     if prior is not None and prior_path is not None:
         record["prior_map"] = _prior_summary(prior_path, prior, res, run_dir)

@@ -221,7 +221,7 @@ class UnknownPoseLocaliser:
         match_rows = found.match_rows[inside]
         k = len(slots)
         pose = VehiclePose.of(st, vin)  # relinearised
-        pred, _ = self.updater.predict(vin, pose, slots)
+        pred, _ = self.updater.predict(pose, slots)
         if keep:
             res, _ = self.updater.iterated_update(
                 vin, pred, np.arange(k), frame.z[match_rows], self.bounded()

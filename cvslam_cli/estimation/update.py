@@ -93,13 +93,13 @@ class VisualUpdater:
         self.gamma = GammaPolicy(settings)
 
     def predict(
-        self, vin: VehicleInput, pose: VehiclePose, slots: I64, noise_scale: F64 | None = None
+        self, pose: VehiclePose, slots: I64, noise_scale: F64 | None = None
     ) -> tuple[LandmarkPrediction, LandmarkErrors]:
-        """The landmarks in `slots` predicted into vin's images from its `pose` (the state's
-        now) with their innovation covariances (with R_hat, times `noise_scale` (k,) per
+        """The landmarks in `slots` predicted into the images of the vehicle at `pose` (the
+        state's now) with their innovation covariances (with R_hat, times `noise_scale` (k,) per
         landmark when given: `association.noise_scale`); also their covariance blocks with the
         vehicle (`association.LandmarkErrors`)."""
-        return predict_in_state(self.state, vin, pose, slots, self.R_pixel_hat, noise_scale)
+        return predict_in_state(self.state, pose, slots, self.R_pixel_hat, noise_scale)
 
     def update(
         self,
@@ -154,7 +154,7 @@ class VisualUpdater:
                     stacked, done = previous, done - 1
                     break
                 st.x, last_step = x_next, step
-                pred, _ = self.predict(vin, VehiclePose.of(st, vin), slots, scale)
+                pred, _ = self.predict(VehiclePose.of(st, vin), slots, scale)
                 previous = stacked
                 stacked = self._stack(
                     v_idx, pred, np.arange(len(slots)), z, extra, bearing_scale, x0

@@ -3,13 +3,14 @@ it while running (`VehicleRun`), and its pose as the joint state has it now (`Ve
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cvslam_cli.estimation.motion.calibration import RightCxCalibrated, right_cx_row
 from cvslam_cli.estimation.motion.models import MotionModel
-from cvslam_cli.estimation.observation import StereoObservationModel
+from cvslam_cli.estimation.observation import RightCxShift, StereoObservationModel
 from cvslam_cli.estimation.observation_log import ObservationLog
 from cvslam_cli.estimation.state import JointState
 from cvslam_cli.records.arrays import F64, I64
@@ -34,6 +35,27 @@ class VehicleInput:
     features: FeatureSet
     obs: StereoObservationModel
     pose_known: bool = True
+    right_cx_px: float = 0.0
+
+    def with_right_cx(self, du_px: float) -> VehicleInput:
+        """This vehicle with its rig's right principal point u0 corrected by du_px (a known or
+        estimated correction, `rig_calibration.py`): `obs` predicts with it, and the stereo
+        points of its frames are moved to it as they are read (`right_cx_px`, the correction
+        relative to the feature file's rig, `observation.RightCxShift`)."""
+        return replace(
+            self, obs=self.obs.with_right_cx(du_px), right_cx_px=self.right_cx_px + du_px
+        )
+
+    def with_right_cx_state(self, sigma_px: float) -> VehicleInput:
+        """This vehicle with a further correction of its rig's right principal point a state
+        of its block, of prior standard deviation sigma_px (`motion/calibration.py`)."""
+        if not self.obs.rectified:
+            raise ValueError(f"vehicle {self.name}: the right principal point of a rig that is "
+                             "not rectified cannot be estimated")  # fmt: skip
+        model = RightCxCalibrated(self.model, sigma_px)
+        return replace(
+            self, model=model, x0=model.extend_state(self.x0), P0=model.extend_covariance(self.P0)
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,7 +131,10 @@ class VehicleRun:
 @dataclass(frozen=True, eq=False)
 class VehiclePose:
     """A vehicle's block of the joint state now: `index` (n_v,) its state rows, x (n_v,) (a
-    copy), p_nav_m (3,), euler_rad (3,), J (6, n_v) = d(p, Psi)/d x_v, P_vv (n_v, n_v)."""
+    copy), p_nav_m (3,), euler_rad (3,), J (6, n_v) = d(p, Psi)/d x_v, P_vv (n_v, n_v); `obs`
+    its stereo observation model with the rig's right principal point as corrected
+    (`VehicleInput.right_cx_px`) and as the block estimates it, where it does
+    (`right_cx_row`, `motion/calibration.py`; else None); `right_cx_px` the two together."""
 
     index: I64
     x: F64
@@ -117,15 +142,47 @@ class VehiclePose:
     euler_rad: F64
     J: F64
     P_vv: F64
+    obs: StereoObservationModel
+    right_cx_row: int | None = None
+    right_cx_px: float = 0.0
 
     @staticmethod
     def of(state: JointState, vin: VehicleInput) -> VehiclePose:
         index = state.vehicles[vin.name].index
         x = state.x[index]
         p, euler = vin.model.pose(x)
+        row = right_cx_row(vin.model)
+        du = 0.0 if row is None else float(x[row])
         return VehiclePose(
-            index, x, p, euler, vin.model.pose_jacobian(x), state.P[np.ix_(index, index)]
-        )
+            index, x, p, euler, vin.model.pose_jacobian(x), state.P[np.ix_(index, index)],
+            vin.obs.with_right_cx(du), row, vin.right_cx_px + du,
+        )  # fmt: skip
+
+    def vehicle_jacobian(self, H_pose: F64) -> F64:
+        """(N, 4, n_v) d z / d x_v of observations (u_l, v_l, u_r, v_r) whose Jacobian w.r.t.
+        (p, Psi) is H_pose (N, 4, 6): H_pose J, and d u_r / d du = 1 where the block holds
+        du."""
+        H_v = H_pose @ self.J
+        if self.right_cx_row is not None:
+            H_v[:, 2, self.right_cx_row] += 1.0
+        return H_v
+
+    def point_jacobian(self, J_pose: F64, J_pc: F64, dp_cam_du: F64 | None) -> F64:
+        """(k, d, n_v) d m / d x_v of k points m = g(p, Psi, p_cam) of d numbers whose
+        Jacobians w.r.t. (p, Psi) and the camera point are J_pose (k, d, 6) and J_pc ((k,) d,
+        3) (`landmark_jacobians`), the camera points moving with du by dp_cam_du (k, 3)
+        (`observation.RightCxShift`; None: they do not)."""
+        J_x = J_pose @ self.J
+        if self.right_cx_row is not None and dp_cam_du is not None:
+            J_x[:, :, self.right_cx_row] += (J_pc @ dp_cam_du[:, :, None])[:, :, 0]
+        return J_x
+
+    def right_cx_shift(self) -> RightCxShift | None:
+        """How this vehicle's stereo points move from the feature file's rig to the one it
+        observes with (None: the same rig)."""
+        if self.right_cx_row is None and self.right_cx_px == 0.0:
+            return None
+        return RightCxShift(self.obs.fx_baseline, self.right_cx_px)
 
     @property
     def cov(self) -> F64:

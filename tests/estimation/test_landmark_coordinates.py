@@ -35,6 +35,7 @@ class _Vehicle:
     name = "uav"
     obs = OBS
     model = INS
+    right_cx_px = 0.0
 
 
 def _spd(n: int, rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
@@ -170,7 +171,7 @@ def test_moving_or_turning_the_whole_scene_is_unobservable(name: str) -> None:
     st.x = st.x + rng.normal(scale=1e-2, size=st.n) * np.abs(st.x).clip(1e-2)  # "after updates"
     pose = VehiclePose.of(st, vin)
     slots = np.arange(st.n_landmarks)
-    pred, _ = predict_in_state(st, vin, pose, slots, np.eye(4))
+    pred, _ = predict_in_state(st, pose, slots, np.eye(4))
     cols = st.landmark_columns(slots)
     e_z = np.array([0.0, 0.0, 1.0])
     for direction in ("x", "y", "z", "yaw"):

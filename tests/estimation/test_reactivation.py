@@ -99,7 +99,9 @@ def test_found_again_by_predicted_pixel_and_descriptor_not_when_absent_too_brief
     features = SimpleNamespace(rig=rig)
     run = SimpleNamespace(
         index=0,
-        vin=SimpleNamespace(obs=vin.obs, model=vin.model, name=vin.name, features=features),
+        vin=SimpleNamespace(
+            obs=vin.obs, model=vin.model, name=vin.name, features=features, right_cx_px=0.0
+        ),
     )
     frame = SimpleNamespace(z=frame_z, desc=frame_desc, stamp_ns=2000 + 6_000_000_000)
     s = SlamSettings(reactivation_min_landmarks=2, reactivation_min_absence_ns=5_000_000_000)
@@ -142,7 +144,9 @@ def test_another_vehicles_landmark_is_found_again_with_the_stricter_descriptor_r
     frame = SimpleNamespace(z=frame_z, desc=frame_desc, stamp_ns=2000 + 6_000_000_000)
     rig = SimpleNamespace(size_px=np.array([[640, 480], [640, 480]]))
     features = SimpleNamespace(rig=rig)
-    v = SimpleNamespace(obs=vin.obs, model=vin.model, name=vin.name, features=features)
+    v = SimpleNamespace(
+        obs=vin.obs, model=vin.model, name=vin.name, features=features, right_cx_px=0.0
+    )
     free = np.ones(4, dtype=bool)
 
     def found(index: int, other_ratio: float) -> list[int]:

@@ -93,7 +93,7 @@ def _far_off(rng: np.random.Generator, k: int = 20):
     pose the observations z (k, 4) were taken from, its covariance (10 m, 0.1 rad) saying
     so: a return to mapped ground after seconds of dead reckoning."""
     obs = StereoObservationModel.from_rig(build_rig("t", StereoRigSpec(rectified=True)))
-    vin = SimpleNamespace(name="uav", obs=obs, model=INS)
+    vin = SimpleNamespace(name="uav", obs=obs, model=INS, right_cx_px=0.0)
     p_true, euler_true = np.array([10.0, -5.0, -80.0]), np.array([0.02, -0.03, 1.1])
     body = np.column_stack(
         [rng.uniform(-20, 20, k), rng.uniform(-30, 30, k), rng.uniform(70, 90, k)]
@@ -119,7 +119,7 @@ def test_the_iterated_update_makes_a_correction_one_linearisation_cannot(kind: s
     for iterations in (1, 5):
         st, vin, slots, z, p_true = _far_off(np.random.default_rng(3))
         up = VisualUpdater(st, FilterSettings(kind=kind, gamma=30.0), SIGMA_PX)
-        pred, _ = up.predict(vin, VehiclePose.of(st, vin), slots)
+        pred, _ = up.predict(VehiclePose.of(st, vin), slots)
         rows = np.arange(len(slots))
         res, done = up.iterated_update(vin, pred, rows, z, ["uav"], iterations=iterations)
         assert done == iterations if iterations == 1 else 2 < done <= iterations
@@ -128,7 +128,7 @@ def test_the_iterated_update_makes_a_correction_one_linearisation_cannot(kind: s
         results[iterations] = (np.linalg.norm(e), nees, st.x.copy(), st.P.copy(), res.nis)
     st, vin, slots, z, _ = _far_off(np.random.default_rng(3))
     up = VisualUpdater(st, FilterSettings(kind=kind, gamma=30.0), SIGMA_PX)
-    pred, _ = up.predict(vin, VehiclePose.of(st, vin), slots)
+    pred, _ = up.predict(VehiclePose.of(st, vin), slots)
     once = up.update(st.vehicles["uav"].index, pred, np.arange(len(slots)), z, ["uav"])
     np.testing.assert_array_equal(results[1][2], st.x)
     np.testing.assert_array_equal(results[1][3], st.P)
@@ -152,11 +152,11 @@ def test_the_iterated_update_stops_where_the_update_cost_is_stationary() -> None
     extra = ExtraRows(rng.normal(size=4), H_e, cols_e, R_e)
     up = VisualUpdater(st, FilterSettings(kind="ekf"), SIGMA_PX)
     x0, P0 = st.x.copy(), st.P.copy()
-    pred, _ = up.predict(vin, VehiclePose.of(st, vin), slots)
+    pred, _ = up.predict(VehiclePose.of(st, vin), slots)
     _, done = up.iterated_update(
         vin, pred, np.arange(len(slots)), z, ["uav"], extra=extra, iterations=20
     )
-    pred, _ = up.predict(vin, VehiclePose.of(st, vin), slots)  # relinearised at x
+    pred, _ = up.predict(VehiclePose.of(st, vin), slots)  # relinearised at x
     H = np.zeros((4 * len(slots), st.n))
     v_idx = st.vehicles["uav"].index
     lm_cols = st.landmark_columns(slots)
@@ -185,9 +185,9 @@ def test_another_vehicles_landmark_observed_with_its_own_pixel_noise(kind: str) 
     rows = np.arange(len(slots))
     scaled, doubled = copy.deepcopy(st), copy.deepcopy(st)
     up = VisualUpdater(scaled, settings, SIGMA_PX)
-    pred, _ = up.predict(vin, VehiclePose.of(scaled, vin), slots, np.full(len(slots), 4.0))
+    pred, _ = up.predict(VehiclePose.of(scaled, vin), slots, np.full(len(slots), 4.0))
     up2 = VisualUpdater(doubled, settings, 2 * SIGMA_PX)
-    pred2, _ = up2.predict(vin, VehiclePose.of(doubled, vin), slots)
+    pred2, _ = up2.predict(VehiclePose.of(doubled, vin), slots)
     np.testing.assert_allclose(pred.S, pred2.S, rtol=1e-12)
     res = up.update(scaled.vehicles["uav"].index, pred, rows, z, ["uav"])
     res2 = up2.update(doubled.vehicles["uav"].index, pred2, rows, z, ["uav"])
@@ -197,10 +197,10 @@ def test_another_vehicles_landmark_observed_with_its_own_pixel_noise(kind: str) 
     assert not np.allclose(scaled.x, st.x)
     some = np.where(rows % 2 == 0, 4.0, 1.0)
     pred_some, _ = VisualUpdater(copy.deepcopy(st), settings, SIGMA_PX).predict(
-        vin, VehiclePose.of(st, vin), slots, some
+        VehiclePose.of(st, vin), slots, some
     )
     pred_none, _ = VisualUpdater(copy.deepcopy(st), settings, SIGMA_PX).predict(
-        vin, VehiclePose.of(st, vin), slots
+        VehiclePose.of(st, vin), slots
     )
     R = np.eye(4) * SIGMA_PX**2 * settings.c_v**2
     np.testing.assert_allclose(pred_some.S - pred_none.S, (some - 1)[:, None, None] * R)
