@@ -8,19 +8,18 @@ scale disagreement" of clip b (BENCHMARKS.md, "Refine: the right camera's princi
 
 du is a constant of the log, which a batch solution estimates well and a filter badly: with
 du a state of each vehicle's block from the first frame (`motion/calibration.py`), its first
-estimates come from a few frames whose motion and depths trade off with it (KITTI clip a:
-+0.74 and +1.30 px at frames 2 and 3, +0.18 px at the end) and what the trajectory and the
-landmarks took from them stays: clip a's SE3 error went from 0.076 m to 0.10-0.17 m, for every
-prior and landmark coordinates tried (BENCHMARKS.md, "Fuse: the right camera's principal
-point, estimated by a calibration pass"). So the filter runs twice:
+estimates come from a few frames whose motion and depths trade off with it, a pixel and more
+off, and what the trajectory and the landmarks took from them stays (on KITTI clip a every
+prior and landmark coordinates tried ended less accurate than no estimate at all:
+BENCHMARKS.md, "Fuse: the right camera's principal point, estimated by a calibration
+pass"). So the filter runs twice:
 
 1. the calibration pass: every vehicle with du in its block (prior N(0, sigma^2)), no
    sliding window (its clones' tracks would not see du) and the landmarks in anchored
-   inverse depth, whatever `fuse.map.landmark_coordinates` says: a
-   Cartesian point from one stereo pair starts with its depth biased long (the mean of
-   fx b / d over a noisy disparity), which du then absorbs (+0.36 px on clip a where the
-   batch solution finds +0.20; -0.14 px on a simulated rig that has no offset, against
-   -0.03 in inverse depth);
+   inverse depth, whatever `fuse.map.landmark_coordinates` says: a Cartesian point from one
+   stereo pair starts with its depth biased long (the mean of fx b / d over a noisy
+   disparity), which du then absorbs (measured on clip a against the batch solution, and
+   on a simulated rig with no offset);
 2. the run itself, each rig corrected by its estimate (`VehicleInput.with_right_cx`), the
    estimate taken as known.
 

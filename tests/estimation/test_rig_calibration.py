@@ -222,3 +222,17 @@ def test_a_rig_that_is_not_rectified_is_refused_in_one_line(tmp_path, cvslam) ->
     assert "fuse.calibration.estimate_right_cx" in line and "uav1" in line
     assert "not rectified" in line and "Traceback" not in res.err
     assert not (run / "fuse").exists()
+
+
+def test_only_the_vehicles_with_an_estimate_are_corrected() -> None:
+    """A vehicle whose calibration pass diverged has no estimate: its rig stays as calibrated."""
+    from types import SimpleNamespace
+
+    from cvslam_cli.estimation.rig_calibration import RightCxEstimates
+
+    def vehicle(name: str) -> SimpleNamespace:
+        return SimpleNamespace(name=name, with_right_cx=lambda du: (name, du))
+
+    est = RightCxEstimates({"a": (0.4, 0.02)}, diverged=("b",))
+    a, b = vehicle("a"), vehicle("b")
+    assert est.corrected([a, b]) == [("a", 0.4), b]  # type: ignore[list-item]
