@@ -25,8 +25,8 @@ class FrameMatches:
     can start a landmark (finite, in front, depth_sigma_ratio below the configured bound);
     octave (M,) the left keypoint's SIFT octave (0: the image's own resolution);
     dp_cam_du (M, 3) d p_cam / d du where the vehicle's rig's right principal point is
-    corrected or estimated by du (`rig_calibration.py`; the points then moved to it), else
-    None."""
+    corrected or estimated by du (`rig_calibration.py`; the points then moved to it by
+    `shift`), else None."""
 
     stamp_ns: int
     index: int
@@ -39,6 +39,7 @@ class FrameMatches:
     can_start: NDArray[np.bool_]
     octave: I64
     dp_cam_du: F64 | None = None
+    shift: RightCxShift | None = None
 
     @staticmethod
     def of(
@@ -74,10 +75,23 @@ class FrameMatches:
             can_start=can_start,
             octave=fs.left_octave[ml].astype(np.int64),
             dp_cam_du=dp_cam_du,
+            shift=shift,
         )
 
     def __len__(self) -> int:
         return len(self.z)
+
+    def camera_points(self, rows: I64, du_px: float) -> tuple[F64, F64, F64 | None]:
+        """The stereo points of matches `rows` (p_cam (k, 3), cov (k, 3, 3), dp_cam_du or
+        None) moved to the rig's right principal point corrected by du_px, from where they
+        were read (`shift`): a vehicle that estimates it has updated it since. The moves
+        compose: d + du1 + (du2 - du1) = d + du2."""
+        p, cov = self.p_cam_m[rows], self.cov_cam_m2[rows]
+        if self.shift is None or self.dp_cam_du is None:
+            return p, cov, None
+        if du_px == self.shift.du_px:
+            return p, cov, self.dp_cam_du[rows]
+        return RightCxShift(self.shift.fx_baseline, du_px - self.shift.du_px).apply(p, cov)
 
 
 @dataclass(frozen=True)

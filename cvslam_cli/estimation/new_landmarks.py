@@ -109,8 +109,9 @@ class NewLandmarks:
         idx = np.flatnonzero(free & frame.can_start)
         vin = run.vin
         pose = VehiclePose.of(self.state, vin)
+        p_cam, cov_cam, _ = frame.camera_points(idx, pose.right_cx_px)
         m, cov = vin.obs.landmark_from_camera_point(
-            pose.p_nav_m, pose.euler_rad, frame.p_cam_m[idx], frame.cov_cam_m2[idx], pose.cov
+            pose.p_nav_m, pose.euler_rad, p_cam, cov_cam, pose.cov
         )
         run.candidates = Candidates(
             m, cov, frame.desc[idx], frame.z[idx], frame.depth_sigma_ratio[idx], frame.stamp_ns
@@ -136,8 +137,7 @@ class NewLandmarks:
             return np.zeros(0, dtype=np.int64), pick
         vin = run.vin
         pose = VehiclePose.of(self.state, vin)
-        p_cam, cov_cam = frame.p_cam_m[pick], frame.cov_cam_m2[pick]
-        dp_du = None if frame.dp_cam_du is None else frame.dp_cam_du[pick]
+        p_cam, cov_cam, dp_du = frame.camera_points(pick, pose.right_cx_px)
         if self.state.coords.anchored:
             key, since_ns = self._anchors.get(run.index, (None, frame.stamp_ns))
             if frame.stamp_ns - since_ns > self.settings.anchor_span_ns:

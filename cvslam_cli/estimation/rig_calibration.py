@@ -23,27 +23,31 @@ pass"). So the filter runs twice:
 2. the run itself, each rig corrected by its estimate (`VehicleInput.with_right_cx`), the
    estimate taken as known.
 
-A pass that diverges leaves its vehicles' rigs as calibrated (the stage says so).
+A vehicle the pass did not determine keeps its rig as calibrated, and the stage says why: its
+pass diverged (in one filter, every vehicle of it), or du's standard deviation is still more
+than half its prior (`UNDETERMINED_RATIO`: a vehicle never localised, or that saw too little).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from cvslam_cli.estimation.settings import SlamSettings, WindowSettings
 from cvslam_cli.estimation.slam import Slam
 from cvslam_cli.estimation.vehicle import VehicleInput
 from cvslam_cli.records.landmark_archive import LandmarkArchive
 
+UNDETERMINED_RATIO = 0.5  # du's std over its prior above which the pass did not determine it
+
 
 @dataclass(frozen=True)
 class RightCxEstimates:
     """The calibration pass's estimates: per vehicle (du, its standard deviation) in px;
-    `diverged`: the vehicles whose pass diverged (no estimate)."""
+    `not_estimated`: per vehicle without one, why."""
 
     right_cx_px: dict[str, tuple[float, float]]
-    diverged: tuple[str, ...] = ()
+    not_estimated: dict[str, str] = field(default_factory=dict)
 
     def corrected(self, vehicles: list[VehicleInput]) -> list[VehicleInput]:
         """The vehicles with their rigs corrected by their estimates."""
@@ -69,11 +73,21 @@ def estimate_right_cx(
     )
     groups = [[v] for v in calibrating] if single else [calibrating]
     found: dict[str, tuple[float, float]] = {}
-    diverged: list[str] = []
+    why: dict[str, str] = {}
     for group in groups:
         res = Slam(group, pass_settings, progress=progress, prior=prior).run()
-        if res.divergence is not None:
-            diverged += [v.name for v in group]
-        else:
-            found |= res.right_cx_px
-    return RightCxEstimates(found, tuple(diverged))
+        d = res.divergence
+        if d is not None:
+            t_s = (d.stamp_ns - min(v.start_ns for v in group)) * 1e-9
+            why |= {v.name: f"the calibration pass diverged ({d.vehicle} at {t_s:.1f} s: "
+                            f"{d.reason})" for v in group}  # fmt: skip
+            continue
+        for name, (du, sd) in res.right_cx_px.items():
+            if sd > UNDETERMINED_RATIO * sigma_px:
+                why[name] = (
+                    f"not determined by the calibration pass (+- {sd:.3f} px of a {sigma_px:g} "
+                    "px prior: never localised, or too few observations)"
+                )
+            else:
+                found[name] = (du, sd)
+    return RightCxEstimates(found, why)

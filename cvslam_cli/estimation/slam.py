@@ -130,6 +130,8 @@ class SlamResult:
     # vehicles whose rig's right principal point was estimated: (its estimate, std) px at the
     # end (a state of its block, motion/calibration.py; rig_calibration.py)
     right_cx_px: dict[str, tuple[float, float]] = field(default_factory=dict)
+    # vehicles whose calibration pass gave no estimate, and why (rig_calibration.py)
+    right_cx_not_estimated: dict[str, str] = field(default_factory=dict)
 
     @property
     def landmarks(self) -> LandmarkMap:

@@ -744,7 +744,9 @@ def _filter(
         else:
             res = Slam(inputs, settings, progress=bar.update, prior=prior).run()
     if estimates is not None:
-        res = dataclasses.replace(res, right_cx_px=estimates.right_cx_px)
+        res = dataclasses.replace(
+            res, right_cx_px=estimates.right_cx_px, right_cx_not_estimated=estimates.not_estimated
+        )
     return res, time.perf_counter() - t0
 
 
@@ -767,10 +769,10 @@ def _log_right_cx(estimates: RightCxEstimates) -> None:
             "calibration pass (fuse.calibration.estimate_right_cx); the run uses it",
             name, du, sd,
         )  # fmt: skip
-    for name in estimates.diverged:
+    for name, why in estimates.not_estimated.items():
         log.warning(
-            "fuse %s: the calibration pass diverged; the rig is used as calibrated "
-            "(fuse.calibration.estimate_right_cx)", name,
+            "fuse %s: right camera's principal point u0 %s; the rig is used as calibrated "
+            "(fuse.calibration.estimate_right_cx)", name, why,
         )  # fmt: skip
 
 
@@ -964,11 +966,11 @@ def run(
     )
     record = _record_summary(cfg, summary, inputs)
     record["pixel_sigma_px"] = {"value": round(sigma.sigma_px, 4), "source": sigma.source}
-    if res.right_cx_px:  # the calibration pass's estimates (rig_calibration.py)
+    if res.right_cx_px or res.right_cx_not_estimated:  # the calibration pass's (rig_calibration.py)
         record["right_cx_px"] = {
             v: {"value": round(du, 4), "std": round(sd, 4)}
             for v, (du, sd) in res.right_cx_px.items()
-        }
+        } | {v: {"not_estimated": why} for v, why in res.right_cx_not_estimated.items()}
     record.update(chosen)
     if prior is not None and prior_path is not None:
         record["prior_map"] = _prior_summary(prior_path, prior, res, run_dir)

@@ -118,6 +118,14 @@ def extract_right_cx(metas: Sequence[dict[str, Any]], problem: RefineProblem) ->
     return np.array([applied.get(v.name, 0.0) for v in problem.vehicles])
 
 
+def fuse_right_cx(record: dict[str, Any], source: str, problem: RefineProblem) -> np.ndarray:
+    """(V,) the right-camera u0 correction the fuse run `source` estimated and used (its
+    calibration pass, `estimation/rig_calibration.py`, recorded in run.yaml; 0 where it did
+    not): the map and trajectories refine starts from were made with it."""
+    done = record.get("stages", {}).get(source, {}).get("summary", {}).get("right_cx_px", {})
+    return np.array([float(done.get(v.name, {}).get("value", 0.0)) for v in problem.vehicles])
+
+
 def settings_of(cfg: Config, metas: Sequence[dict[str, Any]]) -> RefineSettings:
     rc = cfg.refine
     sigma = rc.pixel_sigma_px
@@ -463,6 +471,14 @@ def run(
     # the sparse factorisations gain from threads, unlike the filter's small matrices
     with threadpool_limits(limits=None):
         c0 = extract_right_cx(metas, problem)
+        c_fuse = fuse_right_cx(rd.load(), source, problem)
+        if np.any(c_fuse):  # start from the rigs the fuse run corrected
+            problem, c0 = right_cx.moved(problem, c_fuse), c0 + c_fuse
+            log.info(
+                "refine: right cameras' u0 moved by %s px, as the fuse run's calibration pass "
+                "corrected them%s", ", ".join(f"{c:+.3f}" for c in c_fuse),
+                "" if settings.estimate_right_cx else " (refine.estimate_right_cx: not estimated)",
+            )  # fmt: skip
         if rs.rounds == 0 and settings.estimate_right_cx:
             problem, (g, values, e0, e1, it), cx = _calibrated(problem, settings, progress, c0)
         elif rs.rounds == 0:

@@ -190,15 +190,17 @@ def _miscalibrated_yard(tmp_path: Path, offset_px: float) -> Path:
     return out
 
 
-def _rmse(run: Path) -> float:
-    return RunDir(run).load()["stages"]["fuse"]["summary"]["vehicles"]["robot1"]["rmse_m"]
+def _rmse(run: Path, stage: str = "fuse") -> float:
+    return RunDir(run).load()["stages"][stage]["summary"]["vehicles"]["robot1"]["rmse_m"]
 
 
 def test_a_calibration_pass_finds_the_offset_and_takes_its_error_away(tmp_path, cvslam) -> None:
     """A 0.5 px offset makes a 0.3 m-baseline robot's depths 2-12 % too long: its error over
     30 s is 0.68 m. The calibration pass finds the offset within four standard deviations
     (+0.466 +- 0.017 px) and the run with the rig corrected is within 0.1 m of the truth
-    (0.05 m), its estimate recorded in run.yaml."""
+    (0.05 m), its estimate recorded in run.yaml; `cvslam refine` starts from the corrected
+    rig even where it does not estimate it itself (0.07 m; 0.49 m from the rig as
+    calibrated)."""
     run = _miscalibrated_yard(tmp_path, 0.5)
     assert cvslam("-q", "fuse", run).code == 0
     uncorrected = _rmse(run)
@@ -208,6 +210,31 @@ def test_a_calibration_pass_finds_the_offset_and_takes_its_error_away(tmp_path, 
     est = fuse["summary"]["right_cx_px"]["robot1"]
     assert abs(est["value"] - 0.5) < 4 * est["std"] and est["std"] < 0.05
     assert uncorrected > 0.4 and _rmse(run) < 0.1
+    assert cvslam("-q", "refine", run, "--set", "refine.reassociation.rounds=0").code == 0
+    assert _rmse(run, "fuse_refined") < 0.15
+
+
+def test_points_read_at_one_correction_move_on_to_another() -> None:
+    """A frame's points moved to du1 as it is read, then to du2 once the update has moved the
+    estimate (`FrameMatches.camera_points`), are the points moved to du2 at once."""
+    from cvslam_cli.estimation.frame import FrameMatches
+
+    rng = np.random.default_rng(8)
+    p = _camera_points(6, rng)
+    cov = np.tile(np.diag([0.01, 0.01, 0.2]), (6, 1, 1))
+    first = RightCxShift(OBS.fx_baseline, 0.3)
+    p1, cov1, dp1 = first.apply(p, cov)
+    frame = FrameMatches(0, 0, np.zeros((6, 4)), np.zeros((6, 128), np.uint8), p1, cov1,
+                         np.full(6, -1), np.full(6, 0.01), np.ones(6, bool), np.zeros(6, int),
+                         dp1, first)  # fmt: skip
+    rows = np.arange(6)
+    same = frame.camera_points(rows, 0.3)
+    assert same[0] is not None and np.array_equal(same[0], p1) and np.array_equal(same[2], dp1)
+    p2, cov2, dp2 = frame.camera_points(rows, -0.45)
+    q2, qcov2, qdp2 = RightCxShift(OBS.fx_baseline, -0.45).apply(p, cov)
+    np.testing.assert_allclose(p2, q2, rtol=1e-12)
+    np.testing.assert_allclose(cov2, qcov2, rtol=1e-9)
+    np.testing.assert_allclose(dp2, qdp2, rtol=1e-12)
 
 
 def test_a_rig_that_is_not_rectified_is_refused_in_one_line(tmp_path, cvslam) -> None:
@@ -233,6 +260,6 @@ def test_only_the_vehicles_with_an_estimate_are_corrected() -> None:
     def vehicle(name: str) -> SimpleNamespace:
         return SimpleNamespace(name=name, with_right_cx=lambda du: (name, du))
 
-    est = RightCxEstimates({"a": (0.4, 0.02)}, diverged=("b",))
+    est = RightCxEstimates({"a": (0.4, 0.02)}, {"b": "the calibration pass diverged"})
     a, b = vehicle("a"), vehicle("b")
     assert est.corrected([a, b]) == [("a", 0.4), b]  # type: ignore[list-item]
