@@ -115,7 +115,7 @@ class UnknownPoseLocaliser:
             confirmation.drop(vin.name)
             return out
         d = found.p_nav_m - prior.p_nav_m
-        if float(d @ np.linalg.solve(prior.cov[:3, :3], d)) > s.localise_prior_chi2:
+        if _prior_d2(d, prior.cov[:3, :3]) > s.localise_prior_chi2:
             confirmation.drop(vin.name)
             out.rejected = len(found.match_rows)
             return out
@@ -294,3 +294,11 @@ def pose_found_dominates(weight: F64) -> bool:
     filter's carries all there is (`DOMINANT_WEIGHT`)."""
     rows = [0, 1, 2, 5]  # position and heading: what a pose found replaces (`_accept`)
     return bool(np.min(np.linalg.eigvals(weight[np.ix_(rows, rows)]).real) >= DOMINANT_WEIGHT)
+
+
+def _prior_d2(d: F64, P: F64) -> float:
+    """The Mahalanobis distance d^T P^-1 d of a found position from the prior's, over the
+    axes the vehicle's state has (a ground robot's height is no state: its variance is 0,
+    and the PnP pose's height says nothing of its state)."""
+    k = np.diag(P) > 0
+    return float(d[k] @ np.linalg.solve(P[np.ix_(k, k)], d[k]))

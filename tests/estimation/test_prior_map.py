@@ -299,3 +299,27 @@ def test_a_refined_map_is_a_prior_map(worlds, tmp_path, cvslam):
         s = _summary(run)
         assert s["prior_map"]["landmarks"] == len(refined)
         assert (s["vehicles"]["uav2"]["prior_landmarks"] > 12) == used, sim
+
+
+def test_a_ground_robot_of_unknown_pose_is_localised_in_a_prior_map(tmp_path, cvslam):
+    """A ground robot's state has no height (3-DOF odometry): the check of the pose found
+    against its prior is over the axes it has (its height variance is 0; the check's solve
+    of the whole position covariance was a traceback)."""
+    from cvslam_cli.sim.scenario import SCENARIO_DIR
+
+    sc = load_scenario(SCENARIO_DIR / "ugv2_yard.yaml", ["mode=landmarks", "duration_s=20"], seed=2)
+    first = simulate(sc, tmp_path / "first").out_dir
+    again = tmp_path / "again"
+    shutil.copytree(first, again)
+    for run in (first, again):
+        (run / "robot2.mcap").unlink()
+        for f in (run / "features").glob("robot2*"):
+            f.unlink()
+    assert cvslam("-q", "fuse", first).code == 0
+    unknown = "fuse.initial.unknown={robot1: {offset_m: [1.0, -1.0, 0.0], yaw_offset_rad: 0.05}}"
+    res = cvslam("fuse", again, "--set", f"fuse.prior_map={first}", "--set", unknown)
+    assert res.code == 0, res.err
+    summary = yaml.safe_load((again / "run.yaml").read_text())["stages"]["fuse"]["summary"]
+    robot = summary["vehicles"]["robot1"]
+    assert robot["localised_after_s"] is not None and robot["localised_after_s"] < 2.0
+    assert robot["rmse_m"] < 0.5
