@@ -77,7 +77,6 @@ from cvslam_cli.estimation.motion.calibration import right_cx_row
 from cvslam_cli.estimation.motion.models import propagate
 from cvslam_cli.estimation.motion.segments import motion_segments
 from cvslam_cli.estimation.new_landmarks import NewLandmarks
-from cvslam_cli.estimation.observation import RightCxShift
 from cvslam_cli.estimation.octave_noise import OctaveBearingNoise, match_octaves
 from cvslam_cli.estimation.octave_noise import resolve as resolve_octaves
 from cvslam_cli.estimation.prior_map import OFFSET_BLOCK, PriorLandmarks, PriorMap
@@ -130,8 +129,6 @@ class SlamResult:
     # vehicles whose rig's right principal point was estimated: (its estimate, std) px at the
     # end (a state of its block, motion/calibration.py; rig_calibration.py)
     right_cx_px: dict[str, tuple[float, float]] = field(default_factory=dict)
-    # vehicles whose calibration pass gave no estimate, and why (rig_calibration.py)
-    right_cx_not_estimated: dict[str, str] = field(default_factory=dict)
 
     @property
     def landmarks(self) -> LandmarkMap:
@@ -249,7 +246,7 @@ class Slam:
         self._predict(run, t_ns)
         frame = FrameMatches.of(
             run.vin.features, f, t_ns, self.settings.max_new_depth_sigma_ratio,
-            self._right_cx_shift(run),
+            VehiclePose.of(self.state, run.vin).right_cx_shift(),
         )  # fmt: skip
         # the map by appearance against the filter's pose: a vehicle it contradicts is lost
         contradiction = self.recognition.check(run, frame) if run.localised else None
@@ -289,13 +286,6 @@ class Slam:
             self._window(run, frame, out)
         self._next_candidates(run, frame, out)
         self._record(run, frame, out, lm_std, t_start, prior_used)
-
-    def _right_cx_shift(self, run: VehicleRun) -> RightCxShift | None:
-        """Where run's vehicle corrects or estimates its rig's right principal point, how its
-        frame's stereo points move to it (`observation.RightCxShift`); else None."""
-        if right_cx_row(run.vin.model) is None and run.vin.right_cx_px == 0.0:
-            return None
-        return VehiclePose.of(self.state, run.vin).right_cx_shift()
 
     def _localise(
         self, run: VehicleRun, frame: FrameMatches, contradiction: Contradiction | None
@@ -687,7 +677,6 @@ def merge_results(results: list[SlamResult]) -> SlamResult:
         divergence=min(divergences, key=lambda d: d.stamp_ns) if divergences else None,
         gamma_raised=sum(r.gamma_raised for r in results),
         observations=_merged_observations(results, offsets),
-        right_cx_px={k: v for r in results for k, v in r.right_cx_px.items()},
     )
 
 

@@ -717,11 +717,11 @@ def _filter(
     progress: bool,
     prior: LandmarkArchive | None = None,
     right_cx_sigma_px: float = 0.0,
-) -> tuple[SlamResult, float]:
-    """(the filter's result over every frame, its wall time): one filter for all vehicles,
-    or one per vehicle (`single`) with the results merged; with right_cx_sigma_px > 0, after
-    a calibration pass that estimates each rig's right principal point
-    (`rig_calibration.py`; the result's `right_cx_px`)."""
+) -> tuple[SlamResult, float, RightCxEstimates | None]:
+    """(the filter's result over every frame, its wall time, the calibration pass's
+    estimates): one filter for all vehicles, or one per vehicle (`single`) with the results
+    merged; with right_cx_sigma_px > 0, after a calibration pass that estimates each rig's
+    right principal point (`rig_calibration.py`; else None)."""
     n_frames = sum(int(np.sum(v.features.frame_stamp_ns >= v.start_ns)) for v in inputs)
     calibrating = right_cx_sigma_px > 0
     t0 = time.perf_counter()
@@ -743,11 +743,7 @@ def _filter(
             res = merge_results([Slam([v], settings, progress=bar.update).run() for v in inputs])
         else:
             res = Slam(inputs, settings, progress=bar.update, prior=prior).run()
-    if estimates is not None:
-        res = dataclasses.replace(
-            res, right_cx_px=estimates.right_cx_px, right_cx_not_estimated=estimates.not_estimated
-        )
-    return res, time.perf_counter() - t0
+    return res, time.perf_counter() - t0, estimates
 
 
 def _check_rectified(inputs: list[VehicleInput]) -> None:
@@ -939,7 +935,7 @@ def run(
     cal = cfg.fuse.calibration
     if cal.estimate_right_cx:
         _check_rectified(inputs)
-    res, wall = _filter(
+    res, wall, estimates = _filter(
         inputs, settings, single, f"fuse ({kind})", progress, prior,
         cal.right_cx_sigma_px if cal.estimate_right_cx else 0.0,
     )  # fmt: skip
@@ -966,11 +962,11 @@ def run(
     )
     record = _record_summary(cfg, summary, inputs)
     record["pixel_sigma_px"] = {"value": round(sigma.sigma_px, 4), "source": sigma.source}
-    if res.right_cx_px or res.right_cx_not_estimated:  # the calibration pass's (rig_calibration.py)
+    if estimates is not None:  # the calibration pass's (rig_calibration.py)
         record["right_cx_px"] = {
             v: {"value": round(du, 4), "std": round(sd, 4)}
-            for v, (du, sd) in res.right_cx_px.items()
-        } | {v: {"not_estimated": why} for v, why in res.right_cx_not_estimated.items()}
+            for v, (du, sd) in estimates.right_cx_px.items()
+        } | {v: {"not_estimated": why} for v, why in estimates.not_estimated.items()}
     record.update(chosen)
     if prior is not None and prior_path is not None:
         record["prior_map"] = _prior_summary(prior_path, prior, res, run_dir)
