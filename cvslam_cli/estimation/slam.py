@@ -33,7 +33,9 @@ ground station would. A frame of vehicle v at time t (`Slam._frame`) is six step
    points continue or start feature tracks; the rows of the tracks that end wait for the
    next update (`window_update.py`, `tracks.py`: the MSCKF's use of the points never
    mapped);
-6. record: pose and its covariance, one timeline row, and the divergence check (`events.py`).
+6. record: pose and its covariance, one timeline row, and the divergence check (`events.py`);
+   with a window, the poses of the clones that left it replace their frames' records (the
+   window's last estimate of them: a fixed-lag smoother's output, `Slam._revise`).
 
 A run started from a prior map (`prior_map.py`) has the prior's landmarks in its book from
 the start, out of the state: step 2 brings them in as it brings back evicted landmarks, and
@@ -93,7 +95,7 @@ from cvslam_cli.estimation.unknown_pose import UnknownPoseLocaliser
 from cvslam_cli.estimation.update import VisualUpdater
 from cvslam_cli.estimation.update_budget import resolve as resolve_budget
 from cvslam_cli.estimation.vehicle import VehicleInput, VehiclePose, VehicleRun
-from cvslam_cli.estimation.window_update import SlidingWindow
+from cvslam_cli.estimation.window_update import LaggedPose, SlidingWindow
 from cvslam_cli.records.arrays import F64, I64
 from cvslam_cli.records.landmark_archive import LandmarkArchive, merge_archives
 from cvslam_cli.records.landmarks import LandmarkMap
@@ -286,6 +288,8 @@ class Slam:
             self._window(run, frame, out)
         self._next_candidates(run, frame, out)
         self._record(run, frame, out, lm_std, t_start, prior_used)
+        if self.window is not None:
+            self._revise(self.window.take_lagged())
 
     def _localise(
         self, run: VehicleRun, frame: FrameMatches, contradiction: Contradiction | None
@@ -476,6 +480,21 @@ class Slam:
         free[out.new_rows] = False
         out.window = self.window.step(run.vin, frame, np.flatnonzero(free))
 
+    def _revise(self, lagged: list[LaggedPose]) -> None:
+        """Step 6's end: the poses of earlier frames as the window last estimated them, in
+        place of what was recorded at the frame (a fixed-lag smoother's output; the timeline
+        keeps the frame's own): the pose rows of the vehicle's state and the pose covariance."""
+        runs = {r.vin.name: r for r in self.runs}
+        for lp in lagged:
+            run = runs[lp.vehicle]
+            i = len(run.stamps_ns) - 1
+            while run.stamps_ns[i] != lp.stamp_ns:
+                i -= 1
+            x = run.x[i]
+            J = run.vin.model.pose_jacobian(x)  # a selection of the state's rows
+            run.x[i] = x + J.T @ (lp.pose - J @ x)
+            run.pose_cov[i] = lp.cov
+
     def _flush_window(self) -> None:
         """The window's pending rows applied alone (a frame without a landmark update)."""
         if self.window is not None:
@@ -588,6 +607,8 @@ class Slam:
     # ------------------------------------------------------------------ result
     def _result(self) -> SlamResult:
         st, book = self.state, self.book
+        if self.window is not None:
+            self._revise(self.window.take_lagged() + self.window.in_window())
         if st.n_landmarks:
             slots = np.arange(st.n_landmarks)
             book.store_estimates(slots, st.landmarks(), st.landmark_covariances(slots))

@@ -18,6 +18,11 @@ gate against H0 P_cc H0^T + R is dropped (a wrong match or a moving point). The 
 rows, stacked, are compressed by a QR when they outnumber the clones' states and applied
 as one EKF / NH-infinity update on the clone columns; the vehicle states follow through
 their correlation with the clones.
+
+A clone is corrected by every frame while it is in the window (the tracks that end, and the
+landmark updates through its correlation with the vehicle): when it leaves, its estimate is
+that frame's pose given the frames after it, a fixed-lag smoother's (`LaggedPose`, written
+in place of the frame's own estimate: `Slam._revise`).
 """
 
 from __future__ import annotations
@@ -134,6 +139,18 @@ def track_residuals(
     return TrackResiduals(r, H, keys, len(r_out), rejected, nis, dof)
 
 
+@dataclass(frozen=True, eq=False)
+class LaggedPose:
+    """A frame's pose as the window last estimated it, when its clone leaves the window (the
+    frames after it have corrected it): the vehicle's name, the frame's stamp, pose (6,)
+    (p_nav_m, euler_rad) and its covariance (6, 6)."""
+
+    vehicle: str
+    stamp_ns: int
+    pose: F64
+    cov: F64
+
+
 @dataclass(eq=False)
 class _VehicleWindow:
     clones: list[int] = field(default_factory=list)
@@ -167,6 +184,8 @@ class SlidingWindow:
         self._windows: dict[str, _VehicleWindow] = {}
         self._pending: list[TrackResiduals] = []
         self._leaving: list[int] = []
+        self._frame_of: dict[int, tuple[str, int]] = {}  # clone key: (vehicle, stamp_ns)
+        self._lagged: list[LaggedPose] = []
 
     def step(self, vin: VehicleInput, frame: FrameMatches, free: I64) -> WindowOutcome:
         """One frame of `vin`: clone its pose, continue or start tracks with the frame rows
@@ -178,6 +197,7 @@ class SlidingWindow:
         pose = VehiclePose.of(st, vin)
         key, _ = pose.clone(st, pinned=True)
         w.clones.append(key)
+        self._frame_of[key] = (vin.name, frame.stamp_ns)
         tracks = w.tracks
         cont, rows = tracks.match(
             vin, pose, frame, free, self.R_pixel, s.match_gate_chi2, s.descriptor_ratio,
@@ -243,11 +263,34 @@ class SlidingWindow:
         return ExtraRows(r, H, cols, sigma2 * np.eye(len(r)))
 
     def settle(self) -> None:
-        """The pending rows have been applied: forget them and release the clones that left."""
+        """The pending rows have been applied: forget them and release the clones that left,
+        their poses kept as the window last estimated them (`take_lagged`)."""
         self._pending.clear()
         for key in self._leaving:
+            self._lagged.append(self._lagged_pose(key, self._frame_of.pop(key)))
             self.state.release_anchor(key)
         self._leaving.clear()
+
+    def take_lagged(self) -> list[LaggedPose]:
+        """The poses of the clones released since the last call (`settle`)."""
+        out, self._lagged = self._lagged, []
+        return out
+
+    def in_window(self) -> list[LaggedPose]:
+        """The poses of the clones still in the window (as they are now: the run's end)."""
+        return [
+            self._lagged_pose(k, self._frame_of[k])
+            for w in self._windows.values()
+            for k in w.clones
+        ]
+
+    def _lagged_pose(self, key: int, frame: tuple[str, int]) -> LaggedPose:
+        rows = self.state.anchor_rows(key)
+        assert rows is not None  # pinned until released
+        vehicle, stamp_ns = frame
+        return LaggedPose(
+            vehicle, stamp_ns, self.state.x[rows].copy(), self.state.P[np.ix_(rows, rows)].copy()
+        )
 
     def flush(self, bounded: Sequence[str]) -> None:
         """Apply the pending rows alone (a frame without a landmark update, the run's end)."""

@@ -93,3 +93,27 @@ def test_the_sliding_window_stays_consistent(sims):
     )
     assert 1.5 < p.mean() < 4.5 and 1.5 < a.mean() < 4.5
     assert _in_band(p) > 0.6 and _in_band(a) > 0.6
+
+
+def test_the_window_writes_each_pose_as_its_clone_left_it(sims):
+    """With a window a frame's pose is written as the window last estimated it, when its
+    clone leaves (a fixed-lag smoother: `Slam._revise`), the timeline keeping the frame's own:
+    the later frames' information makes it closer to the truth, and (EKF) never less
+    certain."""
+    cfg = load_config((), [*MC_FILTER_OVERRIDES, "fuse.window.clones=3"])
+    rmse_lagged, rmse_own = [], []
+    for seed, d in zip(SEEDS, sims, strict=True):
+        res, gt = ekf_on_simulation(d, cfg, initial_error_seed=seed)
+        tr = res.tracks["uav1"]
+        rows = [r for r in res.timeline if r["vehicle"] == "uav1"]
+        assert [r["stamp_ns"] for r in rows] == tr.stamps_ns.tolist()
+        own = np.array([[r["x_m"], r["y_m"], r["z_m"]] for r in rows])
+        var_own = np.array([r["sigma_pos_m"] for r in rows]) ** 2
+        p_t, _, _ = interpolate_poses(gt.stamps_ns, gt.p_nav_m, gt.q_nav_body_xyzw, tr.stamps_ns)
+        rmse_lagged.append(np.sqrt(np.mean(np.sum((tr.p_nav_m - p_t) ** 2, axis=1))))
+        rmse_own.append(np.sqrt(np.mean(np.sum((own - p_t) ** 2, axis=1))))
+        var_lagged = np.trace(tr.pose_cov[:, :3, :3], axis1=1, axis2=2)
+        assert np.all(var_lagged <= var_own * (1 + 1e-9))
+        assert np.mean(var_lagged[:-3] < var_own[:-3] * (1 - 1e-6)) > 0.9
+    print(f"\nRMSE per run: lagged {np.round(rmse_lagged, 4)}, own {np.round(rmse_own, 3)}")
+    assert np.mean(rmse_lagged) < np.mean(rmse_own)

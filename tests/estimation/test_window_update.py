@@ -208,6 +208,7 @@ def test_pending_rows_wait_for_their_clones_columns_and_release_leaving_clones_a
     window = SlidingWindow(st, SETTINGS, ekf, GammaPolicy(ekf), np.eye(4) * SIGMA_PX**2)
     window._residuals(_Vehicle(), t)
     window._leaving.append(keys_c[0])
+    window._frame_of[keys_c[0]] = ("uav1", 1_000)  # as `step` registers the clones it makes
     st.release_anchor(keys[0])  # the columns of the other clones move by 6
     # the same rows applied at once, on a copy of the state as it is now
     ref = copy.deepcopy(st)
@@ -220,6 +221,12 @@ def test_pending_rows_wait_for_their_clones_columns_and_release_leaving_clones_a
     assert rows is not None and len(rows.r) == len(tr.r) and tr.used == 12
     window.flush(())
     assert window.pending_rows() is None and st.anchor_rows(keys_c[0]) is None
+    # the leaving clone's pose as the update left it, then released
+    (lagged,) = window.take_lagged()
+    leaving = ref.anchor_rows(keys_c[0])
+    assert (lagged.vehicle, lagged.stamp_ns) == ("uav1", 1_000) and not window.take_lagged()
+    np.testing.assert_allclose(lagged.pose, ref.x[leaving], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lagged.cov, ref.P[np.ix_(leaving, leaving)], rtol=0, atol=1e-15)
     ref.release_anchor(keys_c[0])
     np.testing.assert_allclose(st.x, ref.x, rtol=0, atol=1e-12)
     np.testing.assert_allclose(st.P, ref.P, rtol=0, atol=1e-15)

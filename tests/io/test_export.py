@@ -144,7 +144,10 @@ def test_evo_rpe_and_ape_of_the_kitti_export_equal_eval(kitti_a):
     ref = file_interface.read_kitti_poses_file(str(clip / "poses.txt"))
     est = file_interface.read_kitti_poses_file(str(run / "export" / "fuse_dataset" / "car.txt"))
     assert est.num_poses == ref.num_poses == 51
-    np.testing.assert_allclose(est.poses_se3[0], np.eye(4), atol=1e-6)  # KITTI: first = I
+    # KITTI: first = I, the run's initial pose; with a window the trajectory holds its
+    # estimate given the frames after it (docs/fuse_outputs.md, "Trajectories"), within the
+    # initial pose's prior (attitude 5 mrad, position 0.1 m: here 3.6 mrad, under 1 um)
+    np.testing.assert_allclose(est.poses_se3[0], np.eye(4), atol=0.015)
     rpe = metrics.RPE(metrics.PoseRelation.translation_part, 1.0, metrics.Unit.frames)
     rpe.process_data((ref, est))
     ape = metrics.APE(metrics.PoseRelation.translation_part)
