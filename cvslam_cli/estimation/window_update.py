@@ -20,8 +20,9 @@ as one EKF / NH-infinity update on the clone columns; the vehicle states follow 
 their correlation with the clones.
 
 A clone is corrected by every frame while it is in the window (the tracks that end, and the
-landmark updates through its correlation with the vehicle): when it leaves, its estimate is
-that frame's pose given the frames after it, a fixed-lag smoother's (`LaggedPose`, written
+landmark updates through its correlation with the vehicle): when it is released (at the
+first update after it left the window), its estimate is that frame's pose given the frames
+after it, a fixed-lag smoother's (`LaggedPose`, written
 in place of the frame's own estimate: `Slam._revise`).
 """
 
@@ -277,12 +278,10 @@ class SlidingWindow:
         return out
 
     def in_window(self) -> list[LaggedPose]:
-        """The poses of the clones still in the window (as they are now: the run's end)."""
-        return [
-            self._lagged_pose(k, self._frame_of[k])
-            for w in self._windows.values()
-            for k in w.clones
-        ]
+        """The poses of the clones not released yet, those that left the window waiting for
+        their rows too (as they are now: the run's end)."""
+        keys = self._leaving + [k for w in self._windows.values() for k in w.clones]
+        return [self._lagged_pose(k, self._frame_of[k]) for k in keys]
 
     def _lagged_pose(self, key: int, frame: tuple[str, int]) -> LaggedPose:
         rows = self.state.anchor_rows(key)

@@ -6,8 +6,9 @@ Frames (`geometry/output_frames.py`):
 - `enu`: `T_enu_body`, the z-up frame beside nav (x east, y north, z up), body unchanged;
 - `dataset`: `T_world_sensor`, the pose of the sensor the dataset's ground truth is about in
   the dataset's world (KITTI: camera 0 in the poses.txt world, so that the first pose is the
-  identity like poses.txt's; EuRoC: the IMU body in the Vicon world), undoing the
-  conversion the importer recorded in each log (`io/dataset_frames.py`). Logs without one
+  identity like poses.txt's, up to the window's later estimate of it; EuRoC: the IMU body
+  in the Vicon world), undoing the conversion the importer recorded in each log
+  (`io/dataset_frames.py`). Logs without one
   (simulations, recordings) are refused with one line naming the run and the log.
 Formats: `tum` (`<v>.tum`: t x y z qx qy qz qw), `kitti` (`<v>.txt`: 12 numbers per pose,
 row-major 3x4, and `<v>_times.txt`: the stamp of each line in seconds), `euroc`

@@ -219,6 +219,8 @@ def test_pending_rows_wait_for_their_clones_columns_and_release_leaving_clones_a
     assert st.anchor_rows(keys_c[0]) is not None  # waits for the rows that use it
     rows = window.pending_rows()
     assert rows is not None and len(rows.r) == len(tr.r) and tr.used == 12
+    # a run stopped before the rows are applied (a divergence) still has the leaving clone
+    assert [lp.stamp_ns for lp in window.in_window()] == [1_000]
     window.flush(())
     assert window.pending_rows() is None and st.anchor_rows(keys_c[0]) is None
     # the leaving clone's pose as the update left it, then released
