@@ -22,8 +22,8 @@ their correlation with the clones.
 A clone is corrected by every frame while it is in the window (the tracks that end, and the
 landmark updates through its correlation with the vehicle): when it is released (at the
 first update after it left the window), its estimate is that frame's pose given the frames
-after it, a fixed-lag smoother's (`LaggedPose`, written
-in place of the frame's own estimate: `Slam._revise`).
+after it, a fixed-lag smoother's (`LaggedPose`, written in place of the frame's own
+estimate: `Slam._revise`).
 """
 
 from __future__ import annotations
@@ -142,9 +142,9 @@ def track_residuals(
 
 @dataclass(frozen=True, eq=False)
 class LaggedPose:
-    """A frame's pose as the window last estimated it, when its clone leaves the window (the
-    frames after it have corrected it): the vehicle's name, the frame's stamp, pose (6,)
-    (p_nav_m, euler_rad) and its covariance (6, 6)."""
+    """A frame's pose as the window last estimated it, when its clone is released (the frames
+    after it have corrected it): the vehicle's name, the frame's stamp, pose (6,) (p_nav_m,
+    euler_rad) and its covariance (6, 6)."""
 
     vehicle: str
     stamp_ns: int
