@@ -483,16 +483,15 @@ class Slam:
     def _revise(self, lagged: list[LaggedPose]) -> None:
         """Step 6's end: the poses of earlier frames as the window last estimated them, in
         place of what was recorded at the frame (a fixed-lag smoother's output; the timeline
-        keeps the frame's own): the pose rows of the vehicle's state and the pose covariance."""
+        keeps the frame's own): the vehicle's state moved to that pose (`with_pose`, the
+        motion it carries kept) and the pose covariance."""
         runs = {r.vin.name: r for r in self.runs}
         for lp in lagged:
             run = runs[lp.vehicle]
             i = len(run.stamps_ns) - 1
             while run.stamps_ns[i] != lp.stamp_ns:
                 i -= 1
-            x = run.x[i]
-            J = run.vin.model.pose_jacobian(x)  # a selection of the state's rows
-            run.x[i] = x + J.T @ (lp.pose - J @ x)
+            run.x[i] = run.vin.model.with_pose(run.x[i], lp.pose[:3], lp.pose[3:])
             run.pose_cov[i] = lp.cov
 
     def _flush_window(self) -> None:
