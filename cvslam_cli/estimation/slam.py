@@ -485,9 +485,8 @@ class Slam:
         place of what was recorded at the frame (a fixed-lag smoother's output; the timeline
         keeps the frame's own): the vehicle's state moved to that pose (`with_pose`, the
         motion it carries kept) and the pose covariance."""
-        runs = {r.vin.name: r for r in self.runs}
         for lp in lagged:
-            run = runs[lp.vehicle]
+            run = self.runs[self.names.index(lp.vehicle)]
             i = len(run.stamps_ns) - 1
             while run.stamps_ns[i] != lp.stamp_ns:
                 i -= 1
