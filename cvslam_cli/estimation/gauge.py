@@ -22,8 +22,12 @@ lie 75 m apart do fix the team's heading to a few mrad once they share landmarks
 The cure kept here (`fuse.observability_constrained`): the state carries N (`JointState`),
 - started at each vehicle's initial state from the symmetry (`vehicle_basis`): the
   position rows move with t, the nav-frame position and velocity rows turn with the yaw
-  angle (d(Rz p)/d angle = (-p_e, p_n, 0)), the yaw row moves with it, body-frame states and
-  biases do not move;
+  angle (d(Rz p)/d angle = (-p_e, p_n, 0) for a turn about the origin), the yaw row moves
+  with it, body-frame states and biases do not move. The turn is taken about the team's
+  start (`team_pivot`), not the nav frame's origin: the same directions, but no estimate
+  then depends on where that origin lies (kilometres away in a georeferenced frame, a turn
+  about it made the update leak information along the gauge in rounding). A team that
+  drives many kilometres from its start meets the same limit;
 - propagated with the vehicle's transition, N_v <- F N_v (`JointState.predict`);
 - extended by the chain rule for every state added: a new state y = G x_rows + w has rows
   G N[rows] (a clone copies its vehicle's rows; an anchored inverse depth relative to a clone
@@ -111,23 +115,46 @@ def has_down_translation(models: list[MotionModel]) -> bool:
     return all("p_d" in m.state_names for m in models)
 
 
-def vehicle_basis(model: MotionModel, x: F64, down: bool) -> F64:
+def vehicle_basis(model: MotionModel, x: F64, down: bool, pivot_ne_m: F64 | None = None) -> F64:
     """N's rows (n_v, 3 or 4) for a vehicle of `model` at state x (module docstring); the
-    down column only when `down`."""
+    down column only when `down`. The turn is about the vertical through `pivot_ne_m` (north,
+    east; None: the nav frame's origin). A turn about another point is this one plus a
+    translation, also in the gauge, so the pivot changes N's columns, not the directions they
+    span; but the turn's rows for a position p are p - pivot, and a pivot far from the
+    vehicles makes the turn column nearly a multiple of a translation column, which the
+    constrained update then separates in rounding (`JointState` pivots at the team's start:
+    `team_pivot`)."""
     names = model.state_names
     N = np.zeros((model.n, 4))
     index = {name: i for i, name in enumerate(names)}
     for axis, name in enumerate(TRANSLATIONS):
         if name in index:
             N[index[name], axis] = 1.0
-    for n_name, e_name in (("p_n", "p_e"), ("v_n", "v_e")):  # nav-frame vectors turn
+    pivot = np.zeros(2) if pivot_ne_m is None else np.asarray(pivot_ne_m, dtype=float)
+    # nav-frame vectors turn: positions about the pivot, velocities as directions
+    for n_name, e_name, about in (("p_n", "p_e", pivot), ("v_n", "v_e", np.zeros(2))):
         if n_name in index and e_name in index:
             i, j = index[n_name], index[e_name]
-            N[i, YAW_COLUMN] = -x[j]
-            N[j, YAW_COLUMN] = x[i]
+            N[i, YAW_COLUMN] = -(x[j] - about[1])
+            N[j, YAW_COLUMN] = x[i] - about[0]
     if "yaw" in index:
         N[index["yaw"], YAW_COLUMN] = 1.0
     return N if down else N[:, [0, 1, YAW_COLUMN]]
+
+
+def team_pivot(blocks: Sequence[tuple[MotionModel, F64]]) -> F64:
+    """(2,) north, east (m): the mean initial horizontal position of the vehicles (model,
+    x0) that have one, the pivot of the gauge's turn (`vehicle_basis`); the origin if none
+    has. Where the nav frame's origin lies (a map frame kilometres away, as georeferenced
+    logs have) then changes no estimate: with the turn about the origin, a team 10 km from it
+    ended 0.23 m elsewhere than the same team at it (BENCHMARKS.md, "Fuse: the gauge's turn
+    about the team's start")."""
+    starts = [
+        [x0[model.state_names.index("p_n")], x0[model.state_names.index("p_e")]]
+        for model, x0 in blocks
+        if "p_n" in model.state_names and "p_e" in model.state_names
+    ]
+    return np.mean(starts, axis=0) if starts else np.zeros(2)
 
 
 def constrain(H: F64, N: F64) -> F64:

@@ -39,7 +39,7 @@ from cvslam_cli.estimation.filters import (
     UpdateResult,
     update_inplace,
 )
-from cvslam_cli.estimation.gauge import has_down_translation, vehicle_basis
+from cvslam_cli.estimation.gauge import has_down_translation, team_pivot, vehicle_basis
 from cvslam_cli.estimation.landmark_coordinates import Cartesian, LandmarkCoordinates
 from cvslam_cli.estimation.motion.models import MotionModel
 from cvslam_cli.records.arrays import F64, I64
@@ -104,8 +104,11 @@ class JointState:
         if gauge:
             down = has_down_translation([b[1] for b in blocks])
             self._N = np.zeros((len(self._x), 4 if down else 3))
+            self._pivot_ne_m = team_pivot([(b[1], np.asarray(b[2], dtype=float)) for b in blocks])
             for (_, model, x0, _), vb in zip(blocks, self.vehicles.values(), strict=True):
-                self._N[vb.index] = vehicle_basis(model, np.asarray(x0, dtype=float), down)
+                self._N[vb.index] = vehicle_basis(
+                    model, np.asarray(x0, dtype=float), down, self._pivot_ne_m
+                )
         # P stays exactly symmetric: every change writes both triangles alike (the in-place
         # NH-infinity update relies on it and skips the 0.5 (P + P^T) pass)
         for (_, _, _, P0), vb in zip(blocks, self.vehicles.values(), strict=True):
@@ -152,7 +155,7 @@ class JointState:
         if self._N is not None:
             vb = self.vehicles[name]
             down = self._N.shape[1] == 4
-            self._N[vb.index] = vehicle_basis(vb.model, self.x[vb.index], down)
+            self._N[vb.index] = vehicle_basis(vb.model, self.x[vb.index], down, self._pivot_ne_m)
 
     def forget(self, name: str, rows: I64, variances: F64) -> None:
         """Vehicle `name`'s block made independent of the rest of the state, and its states
