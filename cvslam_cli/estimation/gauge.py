@@ -24,10 +24,10 @@ The cure kept here (`fuse.observability_constrained`): the state carries N (`Joi
   position rows move with t, the nav-frame position and velocity rows turn with the yaw
   angle (d(Rz p)/d angle = (-p_e, p_n, 0) for a turn about the origin), the yaw row moves
   with it, body-frame states and biases do not move. The turn is taken about the team's
-  start (`team_pivot`), not the nav frame's origin: the same directions, but no estimate
-  then depends on where that origin lies (kilometres away in a georeferenced frame, a turn
-  about it made the update leak information along the gauge in rounding). A team that
-  drives many kilometres from its start meets the same limit;
+  start (`team_pivot`), not the nav frame's origin: the same directions, with N's numbers
+  on the scale of the team's ground wherever the origin lies (thousands of kilometres away
+  in a georeferenced frame, a turn about it swamps a point's covariance put back,
+  `gauge_correlated`, in rounding);
 - propagated with the vehicle's transition, N_v <- F N_v (`JointState.predict`);
 - extended by the chain rule for every state added: a new state y = G x_rows + w has rows
   G N[rows] (a clone copies its vehicle's rows; an anchored inverse depth relative to a clone
@@ -37,7 +37,9 @@ The cure kept here (`fuse.observability_constrained`): the state carries N (`Joi
   gauge error the states of their group of vehicles read (`gauge_correlated`), so that they
   add no information about it;
 - and every update's Jacobian modified as little as possible to meet it, one observation at
-  a time over the columns it touches (`constrain`): H* = H - (H N) (N^T N)^+ N^T. Each row
+  a time over the columns it touches (`constrain`): H* = H - (H N) (N^T N)^+ N^T, computed
+  from an orthonormal basis of N's columns (a vehicle kilometres from the pivot, a team
+  member far from the others or a long drive, squares a bad condition in N^T N). Each row
   block keeps its own columns, so the update's structure (`filters.BlockRows`) holds.
 Then neither the updates nor the landmarks put back add information along N, and the
 uncertainty of the team's position and heading only grows from the initial prior, as in
@@ -74,6 +76,9 @@ from cvslam_cli.records.arrays import F64, I64
 # Columns of N: translations north, east, down, then the turn about the down axis.
 TRANSLATIONS = ("p_n", "p_e", "p_d")
 YAW_COLUMN = 3
+# Singular values of a block's gauge rows below this fraction of the largest: directions it
+# does not span (`constrain`).
+RANK_RTOL = 1e-10
 # Relative ridge on the vehicles' block when the gauge error is read from it (`gauge_correlated`).
 RIDGE = 1e-12
 
@@ -121,9 +126,8 @@ def vehicle_basis(model: MotionModel, x: F64, down: bool, pivot_ne_m: F64 | None
     east; None: the nav frame's origin). A turn about another point is this one plus a
     translation, also in the gauge, so the pivot changes N's columns, not the directions they
     span; but the turn's rows for a position p are p - pivot, and a pivot far from the
-    vehicles makes the turn column nearly a multiple of a translation column, which the
-    constrained update then separates in rounding (`JointState` pivots at the team's start:
-    `team_pivot`)."""
+    vehicles makes the turn column nearly a multiple of a translation column, whose
+    difference rounding then loses (`JointState` pivots at the team's start: `team_pivot`)."""
     names = model.state_names
     N = np.zeros((model.n, 4))
     index = {name: i for i, name in enumerate(names)}
@@ -145,10 +149,10 @@ def vehicle_basis(model: MotionModel, x: F64, down: bool, pivot_ne_m: F64 | None
 def team_pivot(blocks: Sequence[tuple[MotionModel, F64]]) -> F64:
     """(2,) north, east (m): the mean initial horizontal position of the vehicles (model,
     x0) that have one, the pivot of the gauge's turn (`vehicle_basis`); the origin if none
-    has. Where the nav frame's origin lies (a map frame kilometres away, as georeferenced
-    logs have) then changes no estimate: with the turn about the origin, a team 10 km from it
-    ended 0.23 m elsewhere than the same team at it (BENCHMARKS.md, "Fuse: the gauge's turn
-    about the team's start")."""
+    has. With it and `constrain`'s orthonormal basis, where the nav frame's origin lies (a
+    map frame kilometres away, as georeferenced logs have) changes no estimate: with the
+    turn about the origin, a UAV 10 km from it ended 0.23 m elsewhere than the same UAV at
+    it (BENCHMARKS.md, "Fuse: the gauge's turn about the team's start")."""
     starts = [
         [x0[model.state_names.index("p_n")], x0[model.state_names.index("p_e")]]
         for model, x0 in blocks
@@ -159,9 +163,15 @@ def team_pivot(blocks: Sequence[tuple[MotionModel, F64]]) -> F64:
 
 def constrain(H: F64, N: F64) -> F64:
     """H* (..., m, c) = H - (H N) (N^T N)^+ N^T: the smallest change (Frobenius) to the rows
-    H (..., m, c) over columns whose gauge rows are N (..., c, g) after which H* N = 0."""
-    G = np.swapaxes(N, -1, -2) @ N
-    return H - (H @ N) @ np.linalg.pinv(G, hermitian=True) @ np.swapaxes(N, -1, -2)
+    H (..., m, c) over columns whose gauge rows are N (..., c, g) after which H* N = 0.
+    Computed as H - (H U) U^T with U an orthonormal basis of N's columns (its left singular
+    vectors of a singular value above RANK_RTOL of the largest): the same projection, but
+    N^T N squares N's condition, and a vehicle far from the gauge's pivot (kilometres: its
+    turn column nearly a multiple of a translation column) made the squared form leak
+    information along the gauge in rounding."""
+    U, s, _ = np.linalg.svd(N, full_matrices=False)
+    U = U * (s > RANK_RTOL * s[..., :1])[..., None, :]  # drop what N does not span
+    return H - (H @ U) @ np.swapaxes(U, -1, -2)
 
 
 def gauge_correlated(

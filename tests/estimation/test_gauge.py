@@ -87,14 +87,14 @@ def test_a_turn_about_another_pivot_spans_the_same_directions(model):
 
 
 def test_no_estimate_depends_on_where_the_nav_frame_s_origin_lies(tmp_path: Path) -> None:
-    """A UAV 10 km from the nav frame's origin (a georeferenced map frame) is estimated as
-    the same UAV at it, moved by 10 km, covariance and all: the gauge's turn is about the
-    team's start (`team_pivot`). About the origin, the constrained updates leaked information
-    along the gauge there (this run: positions 0.11 m apart; the 60 s benchmark UAV
-    0.23 m apart, its final position sigma 0.55 -> 0.45 m)."""
+    """A UAV where a UTM-like frame puts it (4500 km north, 500 km east of the origin) is
+    estimated as the same UAV at the origin, moved, covariance and all: the gauge's turn is
+    about the team's start (`team_pivot`). About the origin this run ends 0.43 m elsewhere
+    (with `constrain`'s orthonormal basis; 0.11 m at only 10 km before either change; the
+    60 s benchmark UAV at 10 km 0.23 m, its final position sigma 0.55 -> 0.45 m)."""
     sim = simulate_loop_uav(tmp_path, 12.0, [0])[0]
     cfg = load_config((), ["fuse.observability_constrained=true"])
-    shift_ne_m = np.array([1e4, -5e3])
+    shift_ne_m = np.array([4.5e6, 5e5])  # where a UTM frame puts it
 
     def moved(inputs: list) -> list:
         out = []
@@ -111,6 +111,46 @@ def test_no_estimate_depends_on_where_the_nav_frame_s_origin_lies(tmp_path: Path
     np.testing.assert_allclose(b.p_nav_m[:, :2] - shift_ne_m, a.p_nav_m[:, :2], rtol=0, atol=1e-6)
     np.testing.assert_allclose(b.p_nav_m[:, 2], a.p_nav_m[:, 2], rtol=0, atol=1e-6)
     np.testing.assert_allclose(b.pose_cov, a.pose_cov, rtol=1e-6, atol=1e-12)
+
+
+def test_a_vehicle_that_shares_nothing_changes_nothing(tmp_path: Path) -> None:
+    """The loop UAV in one filter with its twin (the same logs) flown 10 km away, where
+    neither ever sees a landmark of the other: each is estimated as the UAV alone (moved),
+    covariance and all. What couples two vehicles in one filter is only what they observe
+    in common; the gauge is the team's, but a vehicle's updates leave another group's
+    estimate alone (`gauge_correlated`'s groups). The team's pivot lies 5.6 km from each
+    UAV here: with (N^T N)^+ in `constrain` in place of an orthonormal basis they part by
+    0.8 mm. The pixel noise is given (measured, it pools both vehicles' frames) and the
+    landmark bound never binds."""
+    sim = simulate_loop_uav(tmp_path, 12.0, [0])[0]
+    cfg = load_config(
+        (),
+        [
+            "fuse.observability_constrained=true",
+            "fuse.association.pixel_sigma_px=0.5",
+            "fuse.map.max_landmarks=2000",
+            "fuse.map.landmarks_per_added_vehicle=2000",
+            "fuse.map.max_landmarks_total=4000",
+        ],
+    )
+    shift_ne_m = np.array([1e4, -5e3])
+
+    def with_twin(inputs: list) -> list:
+        (v,) = inputs
+        x0 = v.x0.copy()
+        x0[[v.model.state_names.index("p_n"), v.model.state_names.index("p_e")]] += shift_ne_m
+        return [v, dataclasses.replace(v, name="twin", x0=x0)]
+
+    alone, _ = ekf_on_simulation(sim, cfg)
+    team, _ = ekf_on_simulation(sim, cfg, edit_inputs=with_twin)
+    a = alone.tracks["uav1"]
+    assert len(a.p_nav_m) > 50 and len(alone.landmarks.p_nav_m) > 100
+    assert not any(";" in o for o in team.landmarks.observers)  # none seen by both
+    for name, shift in (("uav1", np.zeros(2)), ("twin", shift_ne_m)):
+        b = team.tracks[name]
+        np.testing.assert_allclose(b.p_nav_m[:, :2] - shift, a.p_nav_m[:, :2], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(b.p_nav_m[:, 2], a.p_nav_m[:, 2], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(b.pose_cov, a.pose_cov, rtol=1e-6, atol=1e-12)
 
 
 def test_constrain_removes_the_gauge_and_nothing_else():
