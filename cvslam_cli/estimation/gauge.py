@@ -148,16 +148,12 @@ def vehicle_basis(model: MotionModel, x: F64, down: bool, pivot_ne_m: F64 | None
 
 def team_pivot(blocks: Sequence[tuple[MotionModel, F64]]) -> F64:
     """(2,) north, east (m): the mean initial horizontal position of the vehicles (model,
-    x0) that have one, the pivot of the gauge's turn (`vehicle_basis`); the origin if none
-    has. With it and `constrain`'s orthonormal basis, where the nav frame's origin lies (a
-    map frame kilometres away, as georeferenced logs have) changes no estimate: with the
-    turn about the origin, a UAV 10 km from it ended 0.23 m elsewhere than the same UAV at
-    it (BENCHMARKS.md, "Fuse: the gauge's turn about the team's start")."""
-    starts = [
-        [x0[model.state_names.index("p_n")], x0[model.state_names.index("p_e")]]
-        for model, x0 in blocks
-        if "p_n" in model.state_names and "p_e" in model.state_names
-    ]
+    x0), the pivot of the gauge's turn (`vehicle_basis`); the origin for none. With it and
+    `constrain`'s orthonormal basis, where the nav frame's origin lies (a map frame
+    kilometres away, as georeferenced logs have) changes no estimate: with the turn about
+    the origin, a UAV 10 km from it ended 0.23 m elsewhere than the same UAV at it
+    (BENCHMARKS.md, "Fuse: the gauge's turn about the team's start")."""
+    starts = [model.pose(x0)[0][:2] for model, x0 in blocks]
     return np.mean(starts, axis=0) if starts else np.zeros(2)
 
 

@@ -86,6 +86,12 @@ def test_a_turn_about_another_pivot_spans_the_same_directions(model):
     np.testing.assert_allclose(team_pivot(blocks), np.mean(starts, axis=0))
 
 
+def _moved(v, shift_ne_m: np.ndarray):
+    """Vehicle input v started shift_ne_m (north, east) away, the rest of it as it was."""
+    p, euler = v.model.pose(v.x0)
+    return dataclasses.replace(v, x0=v.model.with_pose(v.x0, p + np.append(shift_ne_m, 0.0), euler))
+
+
 def test_no_estimate_depends_on_where_the_nav_frame_s_origin_lies(tmp_path: Path) -> None:
     """A UAV where a UTM-like frame puts it (4500 km north, 500 km east of the origin) is
     estimated as the same UAV at the origin, moved, covariance and all: the gauge's turn is
@@ -96,16 +102,10 @@ def test_no_estimate_depends_on_where_the_nav_frame_s_origin_lies(tmp_path: Path
     cfg = load_config((), ["fuse.observability_constrained=true"])
     shift_ne_m = np.array([4.5e6, 5e5])  # where a UTM frame puts it
 
-    def moved(inputs: list) -> list:
-        out = []
-        for v in inputs:
-            x0 = v.x0.copy()
-            x0[[v.model.state_names.index("p_n"), v.model.state_names.index("p_e")]] += shift_ne_m
-            out.append(dataclasses.replace(v, x0=x0))
-        return out
-
     here, _ = ekf_on_simulation(sim, cfg)
-    far, _ = ekf_on_simulation(sim, cfg, edit_inputs=moved)
+    far, _ = ekf_on_simulation(
+        sim, cfg, edit_inputs=lambda inputs: [_moved(v, shift_ne_m) for v in inputs]
+    )
     a, b = here.tracks["uav1"], far.tracks["uav1"]
     assert len(a.p_nav_m) == len(b.p_nav_m) > 50
     np.testing.assert_allclose(b.p_nav_m[:, :2] - shift_ne_m, a.p_nav_m[:, :2], rtol=0, atol=1e-6)
@@ -137,9 +137,7 @@ def test_a_vehicle_that_shares_nothing_changes_nothing(tmp_path: Path) -> None:
 
     def with_twin(inputs: list) -> list:
         (v,) = inputs
-        x0 = v.x0.copy()
-        x0[[v.model.state_names.index("p_n"), v.model.state_names.index("p_e")]] += shift_ne_m
-        return [v, dataclasses.replace(v, name="twin", x0=x0)]
+        return [v, dataclasses.replace(_moved(v, shift_ne_m), name="twin")]
 
     alone, _ = ekf_on_simulation(sim, cfg)
     team, _ = ekf_on_simulation(sim, cfg, edit_inputs=with_twin)
