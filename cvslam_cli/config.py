@@ -272,6 +272,7 @@ class AssociationConfig:
     other_vehicle_ratio_over_frame: bool = True
     other_vehicle_pixel_sigma_px: float = opt(0.0, lo=0.0)
     other_vehicle_max_distance_ratio: float = opt(4.0, lo=0.0)
+    other_vehicle_lookalikes_per_mpx: Literal["auto"] | float = opt("auto", lo=0.0)
     max_descriptor_distance: float = opt(350.0, lo=0.0, lo_open=True)
     octave_bearing_variance: Literal["auto"] | tuple[float, ...] = opt("auto", lo=0.0, lo_open=True)
     iterate_sigma_ratio: float = opt(0.05, lo=0.0)

@@ -206,6 +206,42 @@ def descriptor_tests(
     return np.where(new_to_me, other_ratio, own_ratio), new_to_me & other_over_frame
 
 
+def lookalike_bound(per_mpx: float) -> float:
+    """The bound on d2 + ln det S_l of `lookalike_gates` for a density of look-alikes of
+    `per_mpx` per megapixel (inf for 0: no bound): -2 ln(2 pi lambda), lambda per px^2."""
+    return float("inf") if per_mpx <= 0 else float(-2.0 * np.log(2.0 * np.pi * per_mpx * 1e-6))
+
+
+def lookalike_gates(
+    book: LandmarkBook, ids: I64, vehicle: int, S: F64, gate_chi2: float, bound: float
+) -> F64:
+    """The chi-square gate of each landmark `ids` (k,) when `vehicle` observes it, S (k, 4, 4)
+    its innovation covariance: `gate_chi2` for a landmark the vehicle observed before; for one
+    it never observed (another vehicle's) also d2 < bound - ln det S_l, S_l the left image's
+    (u, v) block. The likelihood-ratio test of the match being the landmark against a
+    look-alike (a repeated texture that passes the descriptor tests) spread at a density
+    lambda about it, bound = -2 ln(2 pi lambda) (`lookalike_bound`; Bar-Shalom's clutter
+    model; a repeated texture puts its look-alikes near the original, so lambda is the
+    density there, not the image's average): a window of area ~ sqrt(det S_l) holds a
+    look-alike the more often the larger it is, so the match must lie the closer to the
+    prediction. A vehicle's first
+    sighting of another's landmark comes with the widest windows (its pose relative to that
+    map is known only from its prior or a distant link), and its wrong ones are there: on the
+    mixed team's images, the first associations with d2 + ln det S_l above 14 were 54 %
+    wrong against the true depth, those below 10 4 % (BENCHMARKS.md, "Fuse: another
+    vehicle's landmark, inside a window that a look-alike would fill"). The right coordinates'
+    spread given the left's (the pixel noise) is about the same for every match and folds
+    into the bound."""
+    gates = np.full(len(ids), gate_chi2)
+    if not np.isfinite(bound):
+        return gates
+    new_to_me = book.last_seen_ns[ids, vehicle] == NEVER
+    if new_to_me.any():
+        logdet = np.linalg.slogdet(S[new_to_me][:, :2, :2])[1]
+        gates[new_to_me] = np.minimum(gate_chi2, bound - logdet)
+    return gates
+
+
 def in_view(z: F64, depth_m: F64, size_px: NDArray[np.int64], margin_px: float = 0.0) -> NDArray:
     """(k,) bool: in front of the camera and inside both images (size_px (2, 2) width,
     height of left and right)."""
@@ -247,11 +283,14 @@ def associate(
     ratio: float | F64,
     max_distance: float,
     frame_wide: bool | NDArray[np.bool_] = False,
+    accept_chi2: F64 | None = None,
 ) -> Association:
     """Match predicted landmarks (k) with a frame's stereo matches z_obs (M, 4) (module
     docstring); `ratio`: the descriptor ratio, one for all or one per landmark (k,);
     `frame_wide`, for all or per landmark: the ratio test's second-best distance over all M
-    matches, not only those inside the landmark's window."""
+    matches, not only those inside the landmark's window; `accept_chi2` (k,): each
+    landmark's own gate, at most `gate_chi2` (`lookalike_gates`), for its candidates (a match
+    inside `gate_chi2` but beyond it is still near the landmark: it starts none)."""
     k, M = len(pred.z), len(z_obs)
     if k == 0 or M == 0:
         e = np.zeros(0, dtype=np.int64)
@@ -264,8 +303,8 @@ def associate(
         S_inv = np.linalg.inv(pred.S[lm_in])[at]  # (p, 4, 4), symmetric
         diff = z_obs[obs_at] - pred.z[lm_at]  # (p, 4)
         d2[lm_at, obs_at] = np.sum((diff[:, None, :] @ S_inv)[:, 0] * diff, axis=1)
-    gated = d2 < gate_chi2
-    near = gated.any(axis=0)
+    near = (d2 < gate_chi2).any(axis=0)
+    gated = d2 < (gate_chi2 if accept_chi2 is None else np.asarray(accept_chi2)[:, None])
     rows = np.flatnonzero(gated.any(axis=1))
     if len(rows) == 0:
         e = np.zeros(0, dtype=np.int64)

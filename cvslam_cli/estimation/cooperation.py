@@ -22,6 +22,7 @@ from __future__ import annotations
 from cvslam_cli.estimation.association import (
     associate,
     in_view_rows,
+    lookalike_gates,
     noise_scale,
     pose_consistent,
     record_observations,
@@ -89,10 +90,13 @@ class Cooperation:
             return
         scale = noise_scale(self.book, ids, other.index, s.other_vehicle_noise_ratio)
         pred, errors = self.updater.predict(pose, slots[front], scale)
+        gates = lookalike_gates(
+            self.book, ids, other.index, pred.S, s.gate_chi2, s.other_vehicle_lookalike_bound
+        )
         assoc = associate(
             pred, self.book.desc[ids], cand.z, cand.desc, s.gate_chi2,
             s.other_vehicle_descriptor_ratio, s.max_descriptor_distance,
-            s.other_vehicle_ratio_over_frame,
+            s.other_vehicle_ratio_over_frame, gates,
         )  # fmt: skip
         if not len(assoc.pred_index):
             return

@@ -58,6 +58,7 @@ from cvslam_cli.estimation.association import (
     associate,
     descriptor_tests,
     in_view_rows,
+    lookalike_gates,
     noise_scale,
     pose_consistent,
     scaled_noise,
@@ -159,9 +160,12 @@ class Reactivation:
             book, ids, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio,
             s.other_vehicle_ratio_over_frame,
         )  # fmt: skip
+        gates = lookalike_gates(
+            book, ids, run.index, S, s.gate_chi2, s.other_vehicle_lookalike_bound
+        )
         assoc = associate(
             pred, book.desc[ids], frame.z[idx], frame.desc[idx], s.gate_chi2, ratio,
-            s.max_descriptor_distance, frame_wide,
+            s.max_descriptor_distance, frame_wide, gates,
         )  # fmt: skip
         if len(assoc.pred_index) < s.reactivation_min_landmarks:
             return none

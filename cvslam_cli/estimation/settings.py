@@ -62,6 +62,9 @@ class SlamSettings:
     # a landmark the vehicle has not observed yet is looked for only from within this factor
     # of the distance it was observed from (0: no limit): `LandmarkBook.ids_within_distance`
     other_vehicle_max_distance_ratio: float = 4.0
+    # ... and inside a window small enough for a look-alike to be unlikely there: d2 + ln det
+    # S_l below this (inf: no bound; `association.lookalike_gates`)
+    other_vehicle_lookalike_bound: float = float("inf")
     max_descriptor_distance: float = 350.0
     # the bearing noise variance of a keypoint by its octave, relative (octave_noise.py)
     octave_bearing_variance: OctaveSetting = "auto"

@@ -61,6 +61,7 @@ from cvslam_cli.estimation.association import (
     associate,
     classify,
     descriptor_tests,
+    lookalike_gates,
     noise_scale,
     pose_consistent,
     record_observations,
@@ -336,9 +337,12 @@ class Slam:
             book, ids_vis, run.index, s.descriptor_ratio, s.other_vehicle_descriptor_ratio,
             s.other_vehicle_ratio_over_frame,
         )  # fmt: skip
+        gates = lookalike_gates(
+            book, ids_vis, run.index, pred.S, s.gate_chi2, s.other_vehicle_lookalike_bound
+        )
         assoc = associate(
             pred, book.desc[ids_vis], frame.z, frame.desc, s.gate_chi2, ratio,
-            s.max_descriptor_distance, frame_wide,
+            s.max_descriptor_distance, frame_wide, gates,
         )  # fmt: skip
         ok = pose_consistent(
             pred, assoc.pred_index, frame.z[assoc.match_index], pose.P_vv,

@@ -34,9 +34,11 @@ from tqdm import tqdm
 from cvslam_cli import __version__
 from cvslam_cli.config import Config, FuseConfig
 from cvslam_cli.errors import CvslamError
+from cvslam_cli.estimation.association import lookalike_bound
 from cvslam_cli.estimation.filters import FilterSettings
 from cvslam_cli.estimation.gauge import constrained
 from cvslam_cli.estimation.landmark_coordinates import resolve
+from cvslam_cli.estimation.lookalikes import pooled, sample_lookalikes
 from cvslam_cli.estimation.motion.ins import InsNoise
 from cvslam_cli.estimation.motion.models import (
     ConstantVelocityModel,
@@ -515,14 +517,63 @@ def pixel_sigma(cfg: FuseConfig, inputs: Sequence[VehicleInput]) -> PixelSigma:
     return PixelSigma(noise.sigma_px, "measured", noise)
 
 
+# look-alikes per megapixel where the vehicles' frames show any (fuse.association.
+# other_vehicle_lookalikes_per_mpx auto), and the share of matches with a look-alike in their
+# own frame below which they show none (BENCHMARKS.md, "Fuse: another vehicle's landmark,
+# inside a window that a look-alike would fill")
+AUTO_LOOKALIKES_PER_MPX = 10.0
+NO_LOOKALIKES_SHARE = 0.001
+
+
+def lookalikes_per_mpx(
+    cfg: FuseConfig, inputs: Sequence[VehicleInput], single: bool = False
+) -> float:
+    """fuse.association.other_vehicle_lookalikes_per_mpx resolved: a number as it is; auto:
+    AUTO_LOOKALIKES_PER_MPX where the vehicles' own frames hold look-alikes (`lookalikes.py`:
+    repeated textures), none where they hold none (synthetic descriptors) or where a vehicle
+    has no other's landmarks to look for (alone in its filter, `single`, without a prior
+    map)."""
+    a = cfg.association
+    if a.other_vehicle_lookalikes_per_mpx != "auto":
+        return float(a.other_vehicle_lookalikes_per_mpx)
+    if (single or len(inputs) < 2) and not cfg.prior_map:
+        return 0.0
+    sample = pooled(
+        [
+            sample_lookalikes(
+                v.features, a.other_vehicle_descriptor_ratio, a.max_descriptor_distance
+            )
+            for v in inputs
+        ]
+    )
+    found = sample.share >= NO_LOOKALIKES_SHARE
+    log.info(
+        "fuse: %.1f %% of %d stereo matches in %d frames have a look-alike in their own frame: "
+        "%s (fuse.association.other_vehicle_lookalikes_per_mpx auto)",
+        100 * sample.share,
+        sample.matches,
+        sample.frames,
+        f"another vehicle's landmark is taken only where {AUTO_LOOKALIKES_PER_MPX:g} look-alikes "
+        "per megapixel are less likely"
+        if found
+        else "no bound on the windows",
+    )
+    return AUTO_LOOKALIKES_PER_MPX if found else 0.0
+
+
 def settings_for(cfg: FuseConfig, filter_kind: str, inputs: Sequence[VehicleInput]) -> SlamSettings:
-    """`slam_settings` with the pixel noise resolved for `inputs` (`pixel_sigma`)."""
-    return slam_settings(cfg, filter_kind, pixel_sigma(cfg, inputs).sigma_px)
+    """`slam_settings` with the pixel noise (`pixel_sigma`) and the look-alikes
+    (`lookalikes_per_mpx`) resolved for `inputs`."""
+    return slam_settings(
+        cfg, filter_kind, pixel_sigma(cfg, inputs).sigma_px, lookalikes_per_mpx(cfg, inputs)
+    )
 
 
-def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> SlamSettings:
-    """The filter's settings from the fuse config, with the pixel noise resolved
-    (`pixel_sigma`)."""
+def slam_settings(
+    cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float, lookalikes_mpx: float = 0.0
+) -> SlamSettings:
+    """The filter's settings from the fuse config, with the pixel noise (`pixel_sigma`) and
+    the look-alike density (`lookalikes_per_mpx`) resolved."""
     h = cfg.hinf
     a = cfg.association
     m = cfg.map
@@ -536,6 +587,7 @@ def slam_settings(cfg: FuseConfig, filter_kind: str, pixel_sigma_px: float) -> S
         other_vehicle_ratio_over_frame=a.other_vehicle_ratio_over_frame,
         other_vehicle_pixel_sigma_px=a.other_vehicle_pixel_sigma_px,
         other_vehicle_max_distance_ratio=a.other_vehicle_max_distance_ratio,
+        other_vehicle_lookalike_bound=lookalike_bound(lookalikes_mpx),
         max_descriptor_distance=a.max_descriptor_distance,
         octave_bearing_variance=a.octave_bearing_variance,
         iterate_sigma_ratio=a.iterate_sigma_ratio,
@@ -929,7 +981,8 @@ def run(
     logs = open_logs(logs_used, cfg.logs)
     inputs, truth = build_inputs(cfg, features, logs)
     sigma = pixel_sigma(cfg.fuse, inputs)
-    settings = slam_settings(cfg.fuse, kind, sigma.sigma_px)
+    lookalikes = lookalikes_per_mpx(cfg.fuse, inputs, single)
+    settings = slam_settings(cfg.fuse, kind, sigma.sigma_px, lookalikes)
     _log_settings(cfg.fuse, kind, settings, inputs)
     chosen = _log_auto_choices(settings, inputs, single, prior is not None)
     cal = cfg.fuse.calibration

@@ -4,6 +4,7 @@ the image; the feature types 1/2/3 (`classify`)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from cvslam_cli.estimation.association import (
     TYPE_1,
@@ -15,6 +16,8 @@ from cvslam_cli.estimation.association import (
     associate,
     classify,
     descriptor_tests,
+    lookalike_bound,
+    lookalike_gates,
     noise_scale,
     pose_consistent,
     spread_order,
@@ -168,6 +171,39 @@ def test_descriptor_tests_ask_more_of_another_vehicles_landmark():
     assert list(ratio) == [0.8, 0.8, 0.7] and not wide.any()
     ratio, wide = descriptor_tests(book, ids, 0, 0.8, 0.7, True)
     assert list(ratio) == [0.8] * 3 and not wide.any()
+
+
+def test_another_vehicles_landmark_in_a_wide_window_must_lie_closer():
+    """`lookalike_gates`: a landmark the vehicle never observed keeps the gate while its
+    window is small and gets a tighter one, by the log of the window's area, once a
+    look-alike is likelier there than the landmark itself; its own landmarks, and every
+    landmark without a bound, keep the gate. `associate` then refuses a match inside the
+    gate but beyond the landmark's own, and that match still starts no landmark."""
+    book = LandmarkBook(2)
+    view = np.tile([0.0, 0.0, -1.0], (4, 1))
+    ids = book.add(np.zeros((4, 128), dtype=np.uint8), 0, 5, np.full(4, -1), view)
+    book.last_seen_ns[ids[:2], 1] = 5  # vehicle 1 observed the first two
+    sigma = np.array([0.5, 8.0, 0.5, 8.0])  # px: narrow, wide, narrow, wide windows
+    S = np.eye(4)[None] * sigma[:, None, None] ** 2
+    bound = lookalike_bound(50.0)
+    assert bound == pytest.approx(-2 * np.log(2 * np.pi * 50e-6))
+    gates = lookalike_gates(book, ids, 1, S, 18.47, bound)
+    # own: the gate; another's, narrow (ln det S_l = 4 ln 0.5 < 0): the gate; wide: tighter
+    assert list(gates[:3]) == [18.47] * 3
+    assert gates[3] == pytest.approx(bound - 4 * np.log(8.0))
+    assert 0 < gates[3] < 18.47
+    assert list(lookalike_gates(book, ids, 1, S, 18.47, lookalike_bound(0.0))) == [18.47] * 4
+    assert list(lookalike_gates(book, ids, 0, S, 18.47, bound)) == [18.47] * 4  # all its own
+
+    # one landmark (new to the vehicle, wide window), one match 20 px off in both images:
+    # d2 = 2 (20 / 8)^2 = 12.5, inside the gate, beyond the bound (16.1 - 8.3)
+    pred = _prediction(np.array([[300.0, 200, 280, 200]]), sigma=8.0)
+    z_obs = np.array([[320.0, 200, 300, 200]])
+    desc = np.zeros((1, 128), dtype=np.uint8)
+    kw = {"gate_chi2": 18.47, "ratio": 0.8, "max_distance": 350.0}
+    assert list(associate(pred, desc, z_obs, desc, **kw).pred_index) == [0]
+    refused = associate(pred, desc, z_obs, desc, accept_chi2=gates[3:], **kw)
+    assert len(refused.pred_index) == 0 and list(refused.near_landmark) == [True]
 
 
 def test_spread_order_visits_every_cell_before_repeating():

@@ -228,6 +228,20 @@ def test_the_pixel_noise_configured_measured_or_assumed(sim_run, caplog):
     assert "measured no pixel noise" in caplog.text and "set it to a number" in caplog.text
 
 
+def test_lookalikes_auto_bounds_the_windows_only_where_the_frames_hold_lookalikes(sim_run, caplog):
+    """fuse.association.other_vehicle_lookalikes_per_mpx: a number as it is; auto: none for
+    the landmark-mode simulation (its descriptors are distinct by construction), and for one
+    vehicle (no other's landmarks to look for), without reading the frames."""
+    cfg, inputs, _ = _inputs(sim_run, "fuse.association.other_vehicle_lookalikes_per_mpx=5")
+    assert stage.lookalikes_per_mpx(cfg.fuse, inputs) == 5.0
+    cfg, inputs, _ = _inputs(sim_run)
+    with caplog.at_level("INFO", logger="cvslam.fuse"):
+        assert stage.lookalikes_per_mpx(cfg.fuse, inputs) == 0.0
+    assert "0.0 % of" in caplog.text and "no bound on the windows" in caplog.text
+    assert stage.lookalikes_per_mpx(cfg.fuse, inputs[:1]) == 0.0
+    assert stage.settings_for(cfg.fuse, "hinf", inputs).other_vehicle_lookalike_bound == np.inf
+
+
 def test_a_diverging_filter_is_reported_with_its_time(sim_run, tmp_path, cvslam):
     run = _copy(sim_run, tmp_path)
     # claim 100x more precise pixels than the simulator's: NIS explodes (with the map's
@@ -238,8 +252,9 @@ def test_a_diverging_filter_is_reported_with_its_time(sim_run, tmp_path, cvslam)
     assert r.code == 1
     assert "diverged" in r.err and "s into the run" in r.err and "NIS" in r.err
     # besides the lines saying what "auto" chose (motion model, landmark coordinates, the
-    # observability constraint, the bearing noise by octave, the landmarks a frame)
-    chose = ("model", "coordinates", "constraint", "octave", "updated a frame")
+    # observability constraint, the bearing noise by octave, the landmarks a frame, the
+    # look-alikes)
+    chose = ("model", "coordinates", "constraint", "octave", "updated a frame", "look-alike")
     said = [ln for ln in r.err.strip().splitlines() if not any(w in ln for w in chose)]
     assert len(said) == 1 and said[0].startswith("cvslam: error:")
     assert not (run / "fuse").exists() and not (run / "fuse.partial").exists()
