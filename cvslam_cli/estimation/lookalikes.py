@@ -6,7 +6,7 @@ landmark (distance below `max_distance`, below `ratio` times the next one) witho
 its point: on a repeated texture (bricks, tiles, a row of windows) a landmark's twin does.
 Where the point itself is not re-detected, its twin is the one match left, and no descriptor
 test can tell. Within one frame, a stereo match whose nearest other match passes those tests
-against it is a look-alike pair: on the simulated images of the teams 5-6 % of the matches
+against it is a look-alike pair: on the simulated images of the teams 5-7 % of the matches
 have one, on KITTI 2 %, in the landmark-mode simulation (synthetic descriptors, distinct by
 construction) none (BENCHMARKS.md, "Fuse: another vehicle's landmark, inside a window that
 a look-alike would fill").
