@@ -224,14 +224,13 @@ def lookalike_gates(
     model; a repeated texture puts its look-alikes near the original, so lambda is the
     density there, not the image's average): a window of area ~ sqrt(det S_l) holds a
     look-alike the more often the larger it is, so the match must lie the closer to the
-    prediction. A vehicle's first
-    sighting of another's landmark comes with the widest windows (its pose relative to that
-    map is known only from its prior or a distant link), and its wrong ones are there: on the
-    mixed team's images, the first associations with d2 + ln det S_l above 14 were 54 %
-    wrong against the true depth, those below 10 4 % (BENCHMARKS.md, "Fuse: another
-    vehicle's landmark, inside a window that a look-alike would fill"). The right coordinates'
-    spread given the left's (the pixel noise) is about the same for every match and folds
-    into the bound."""
+    prediction. A vehicle's first sighting of another's landmark comes with the widest
+    windows (its pose relative to that map is known only from its prior or a distant link),
+    and its wrong ones are there: on the mixed team's images, the first associations with d2
+    + ln det S_l above 14 were 54 % wrong against the true depth, those below 10 4 %
+    (BENCHMARKS.md, "Fuse: another vehicle's landmark, inside a window that a look-alike
+    would fill"). The right coordinates' spread given the left's (the pixel noise) is about
+    the same for every match and folds into the bound."""
     gates = np.full(len(ids), gate_chi2)
     if not np.isfinite(bound):
         return gates

@@ -59,6 +59,7 @@ def sample_lookalikes(
 
 
 def pooled(samples: Sequence[LookalikeSample]) -> LookalikeSample:
+    """Several vehicles' samples as one."""
     return LookalikeSample(
         sum(s.frames for s in samples),
         sum(s.matches for s in samples),
