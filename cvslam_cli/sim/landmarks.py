@@ -12,13 +12,15 @@ are matched (true id); `outlier_fraction` of the matches of a frame are wrong ma
 id -2), and `lookalike_fraction` are look-alikes of a landmark in view (repeated texture:
 its descriptor perturbed as a true observation's, its disparity, at a pixel up to
 `lookalike_offset_px` from its own in both images, id -2): the wrong matches that can pass
-the filter's innovation gate and descriptor test, where random ones never do. Matches are
+the filter's innovation gate and descriptor test, where random ones never do. With
+`observer_offset_m` each vehicle observes the landmarks displaced by offsets of its own
+(`seen_by`): one point, different keypoints from different viewpoints. Matches are
 triangulated with the same inverse observation model as extract.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +48,16 @@ class LandmarkWorld:
     descriptor: NDArray[np.uint8]
     wall_segments_ne: F64
     wall_heights_m: F64
+
+
+def seen_by(world: LandmarkWorld, offset_sigma_m: float, rng: np.random.Generator) -> LandmarkWorld:
+    """The landmarks as one vehicle observes them: each displaced by its own Gaussian offset
+    (standard deviation `offset_sigma_m` per nav axis), drawn once from `rng` (the vehicle's
+    stream) and kept for every frame. `world` itself when the deviation is 0 (no draw)."""
+    if offset_sigma_m <= 0.0:
+        return world
+    offset = rng.normal(0.0, offset_sigma_m, world.p_nav_m.shape)
+    return replace(world, p_nav_m=world.p_nav_m + offset)
 
 
 def sift_like_descriptors(n: int, rng: np.random.Generator) -> NDArray[np.uint8]:

@@ -109,6 +109,11 @@ class LandmarkMode:
     reach it are look-alikes (repeated texture): `lookalike_fraction` of the matches of each
     frame imitate a landmark in view (its descriptor, perturbed like a true observation's,
     and its disparity) at a pixel up to `lookalike_offset_px` from its own, landmark id -2.
+    `observer_offset_m`: each vehicle sees each landmark displaced by an offset of its own,
+    fixed over the mission (Gaussian, this standard deviation per nav axis; 0: none), as the
+    images' keypoints of one point land on different parts of its texture from different
+    viewpoints: an error common to all of a vehicle's observations of a landmark, which its
+    own track cannot average away and by which another vehicle's observations disagree.
     """
 
     density_per_100m2: float = opt(2.0, lo=0.0, lo_open=True)
@@ -117,6 +122,7 @@ class LandmarkMode:
     outlier_fraction: float = opt(0.03, lo=0.0, hi=1.0)
     lookalike_fraction: float = opt(0.0, lo=0.0, hi=0.9)
     lookalike_offset_px: float = opt(5.0, lo=0.0)
+    observer_offset_m: float = opt(0.0, lo=0.0)
     descriptor_noise: float = opt(6.0, lo=0.0)
     max_range_m: float = opt(250.0, lo=0.0, lo_open=True)
 

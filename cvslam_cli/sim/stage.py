@@ -48,7 +48,7 @@ from cvslam_cli.parallel import STATE, ordered_map
 from cvslam_cli.records.features import FeatureSetBuilder
 from cvslam_cli.records.poses import PoseTable
 from cvslam_cli.sim.imu import ImuData, simulate_imu
-from cvslam_cli.sim.landmarks import LandmarkWorld, make_world, observe_frame
+from cvslam_cli.sim.landmarks import LandmarkWorld, make_world, observe_frame, seen_by
 from cvslam_cli.sim.odometry import OdometryData, simulate_odometry
 from cvslam_cli.sim.render import RenderResult, photometric
 from cvslam_cli.sim.scenario import Scenario, SimVehicle, dump_scenario
@@ -61,7 +61,7 @@ log = logging.getLogger("cvslam")
 SIM_EPOCH_NS = 1_700_000_000 * 1_000_000_000
 GRAVITY_NAV = np.array([0.0, 0.0, 9.80665])
 # stream ids of the random generators (with the seed and the vehicle index)
-_WORLD, _IMU, _ODOM, _FRAME, _LANDMARKS = 0, 1, 2, 3, 4
+_WORLD, _IMU, _ODOM, _FRAME, _LANDMARKS, _OFFSETS = 0, 1, 2, 3, 4, 5
 
 World = Terrain | Yard
 MIN_CLEARANCE_M = 5.0  # least height of a UAV above the ground (terrain) or the walls (yard)
@@ -419,12 +419,15 @@ def _write_vehicle(
         )
     builder = FeatureSetBuilder(vehicle, rig_calibration(rig))
     lm_rng = _rng(sc.seed, v.index, _LANDMARKS)
+    seen = (
+        None
+        if landmarks is None
+        else seen_by(landmarks, sc.landmarks.observer_offset_m, _rng(sc.seed, v.index, _OFFSETS))
+    )
 
     def observe(i: int, st: int) -> int:
-        assert landmarks is not None
-        left_kp, right_kp, matches = observe_frame(
-            landmarks, rig, s.T_left[i], sc.landmarks, lm_rng
-        )
+        assert seen is not None
+        left_kp, right_kp, matches = observe_frame(seen, rig, s.T_left[i], sc.landmarks, lm_rng)
         builder.add_frame(st, left_kp, right_kp, matches)
         return len(matches["landmark_id"])
 

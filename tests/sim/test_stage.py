@@ -186,6 +186,43 @@ def test_landmark_mode_writes_features_consistent_with_truth(tmp_path):
     assert np.all(fs.match_ratio[fs.match_landmark_id >= 0] < 1.0)
 
 
+def test_observer_offsets_displace_each_vehicles_view_of_a_landmark(tmp_path):
+    """`landmarks.observer_offset_m`: every observation of a landmark by one vehicle sits on
+    the landmark displaced by that vehicle's own offset, the same in every frame, drawn with
+    the deviation asked and independent of the other vehicle's (pixel noise 0: the stereo
+    points are the displaced points exactly)."""
+    sigma = 0.3
+    sets = ["mode=landmarks", "landmarks.outlier_fraction=0", "landmarks.pixel_noise_px=0",
+            f"landmarks.observer_offset_m={sigma}"]  # fmt: skip
+    out = run(load_scenario(small_uav_scenario(tmp_path), sets), tmp_path / "lm").out_dir
+    truth = np.loadtxt(out / "truth" / "landmarks.csv", delimiter=",", skiprows=1)
+    offsets = {}
+    for vehicle in ("uav1", "uav2"):
+        fs, _ = load_features(out / "features" / f"{vehicle}.npz")
+        gt = _records(out / f"{vehicle}.mcap", PoseRecord)
+        by_id: dict[int, list[np.ndarray]] = {}
+        for i, g in enumerate(gt):
+            sl = fs.frame_matches(i)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = quat_xyzw_to_matrix(g.q_xyzw), g.p_m
+            T = T @ fs.rig.T_body_cam[0]
+            ids = fs.match_landmark_id[sl]
+            p_nav = fs.match_p_cam_m[sl] @ T[:3, :3].T + T[:3, 3]
+            for lid, d in zip(ids, p_nav - truth[ids, 1:4], strict=True):
+                by_id.setdefault(int(lid), []).append(d)
+        seen = [np.array(d) for d in by_id.values() if len(d) >= 3]
+        assert len(seen) > 30
+        assert max(np.abs(d - d[0]).max() for d in seen) < 1e-6  # fixed over the mission
+        offsets[vehicle] = {lid: np.array(d)[0] for lid, d in by_id.items()}
+        spread = np.std(np.concatenate([np.array(d)[:1] for d in seen]), axis=0)
+        assert np.all((0.6 * sigma < spread) & (spread < 1.4 * sigma))  # per nav axis
+    shared = sorted(set(offsets["uav1"]) & set(offsets["uav2"]))
+    assert len(shared) > 10
+    a = np.array([offsets["uav1"][i] for i in shared]).ravel()
+    b = np.array([offsets["uav2"][i] for i in shared]).ravel()
+    assert abs(np.corrcoef(a, b)[0, 1]) < 0.4  # each vehicle its own offsets
+
+
 def test_lookalikes_imitate_a_landmark_in_view_near_its_own_pixel(tmp_path):
     """`landmarks.lookalike_fraction`: wrong matches (id -2) whose descriptor is a landmark's
     (perturbed as a true observation's) and whose pixels lie within the offset of that
