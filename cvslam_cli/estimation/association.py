@@ -202,7 +202,7 @@ def descriptor_tests(
     `own_ratio` within its window (BENCHMARKS.md, "Another vehicle's landmarks, a stricter
     descriptor test", "Fuse: another vehicle's landmark, distinct in the whole frame"). The
     frame's association and re-activation both use it."""
-    new_to_me = book.last_seen_ns[ids, vehicle] == NEVER
+    new_to_me = book.unseen_by(ids, vehicle)
     return np.where(new_to_me, other_ratio, own_ratio), new_to_me & other_over_frame
 
 
@@ -234,7 +234,7 @@ def lookalike_gates(
     gates = np.full(len(ids), gate_chi2)
     if not np.isfinite(bound):
         return gates
-    new_to_me = book.last_seen_ns[ids, vehicle] == NEVER
+    new_to_me = book.unseen_by(ids, vehicle)
     if new_to_me.any():
         logdet = np.linalg.slogdet(S[new_to_me][:, :2, :2])[1]
         gates[new_to_me] = np.minimum(gate_chi2, bound - logdet)

@@ -183,6 +183,11 @@ class LandmarkBook:
             ids, vehicle, distance_m, max_ratio
         )
 
+    def unseen_by(self, ids: I64, vehicle: int) -> NDArray[np.bool_]:
+        """(k,) whether `vehicle` has never observed landmarks `ids` (k,) (another vehicle's,
+        to it)."""
+        return self.last_seen_ns[ids, vehicle] == NEVER
+
     def ids_within_distance(
         self, ids: I64, vehicle: int, distance_m: F64, max_ratio: float
     ) -> NDArray[np.bool_]:
@@ -196,7 +201,7 @@ class LandmarkBook:
         mean_log = self.log_distance_sum[ids] / np.maximum(self.n_observations[ids], 1)
         with np.errstate(invalid="ignore"):
             far = np.abs(np.log(distance_m) - mean_log) > np.log(max_ratio)
-        return (self.last_seen_ns[ids, vehicle] != NEVER) | ~far
+        return ~self.unseen_by(ids, vehicle) | ~far
 
     def eviction_order(
         self, protected_slots: I64, trace_cov: F64, latest_frame_ns: I64, tracking_ns: int = 0
