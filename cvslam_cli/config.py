@@ -276,6 +276,7 @@ class AssociationConfig:
     max_descriptor_distance: float = opt(350.0, lo=0.0, lo_open=True)
     octave_bearing_variance: Literal["auto"] | tuple[float, ...] = opt("auto", lo=0.0, lo_open=True)
     iterate_sigma_ratio: float = opt(0.05, lo=0.0)
+    iterate_bearing_sigma_rad: float = opt(0.0, lo=0.0)
     max_update_iterations: int = opt(5, lo=1)
 
 

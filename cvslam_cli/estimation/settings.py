@@ -69,6 +69,7 @@ class SlamSettings:
     # the bearing noise variance of a keypoint by its octave, relative (octave_noise.py)
     octave_bearing_variance: OctaveSetting = "auto"
     iterate_sigma_ratio: float = 0.05  # linearisation.too_uncertain (0: never iterate)
+    iterate_bearing_sigma_rad: float = 0.0  # linearisation.bearings_too_uncertain (0: never)
     max_update_iterations: int = 5  # update.VisualUpdater.iterated_update
     max_landmarks: int = 150  # with one vehicle in the filter ...
     landmarks_per_added_vehicle: int = 100  # ... plus this many per other vehicle ...

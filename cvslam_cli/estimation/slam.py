@@ -74,7 +74,7 @@ from cvslam_cli.estimation.events import Divergence, DivergenceMonitor, EventLog
 from cvslam_cli.estimation.frame import FrameMatches, FrameOutcome
 from cvslam_cli.estimation.gauge import constrained
 from cvslam_cli.estimation.landmark_coordinates import coordinates, resolve
-from cvslam_cli.estimation.linearisation import too_uncertain
+from cvslam_cli.estimation.linearisation import bearings_too_uncertain, too_uncertain
 from cvslam_cli.estimation.mapping import LandmarkBook
 from cvslam_cli.estimation.motion.calibration import right_cx_row
 from cvslam_cli.estimation.motion.models import propagate
@@ -420,8 +420,7 @@ class Slam:
         bearing = (
             None if self.octaves is None else self.octaves.scale(frame.octave[found.match_rows])
         )
-        pose_cov = VehiclePose.of(self.state, vin).cov[:3, :3]
-        if too_uncertain(pose_cov, frame.p_cam_m, s.iterate_sigma_ratio):
+        if self._too_uncertain(run, frame, found):
             res, out.linearisations = self.updater.iterated_update(
                 vin, *args, iterations=s.max_update_iterations, bearing_scale=bearing
             )
@@ -451,6 +450,21 @@ class Slam:
             self.events.add(
                 t_ns, "cross_vehicle", vin.name, others, out.type2, types.absent_ns[first]
             )
+
+    def _too_uncertain(self, run: VehicleRun, frame: FrameMatches, found: _Associated) -> bool:
+        """Whether the frame's update is to be iterated (`linearisation.py`): the vehicle too
+        uncertain for the frame's depths, or a landmark for its bearing."""
+        s = self.settings
+        pose_cov = VehiclePose.of(self.state, run.vin).cov[:3, :3]
+        if too_uncertain(pose_cov, frame.p_cam_m, s.iterate_sigma_ratio):
+            return True
+        S_left = found.pred.S[found.pred_rows][:, :2, :2]
+        scale = found.pred.noise_scale
+        R_left = self.updater.R_pixel_hat[:2, :2]
+        if scale is not None:  # each observation's own noise (`association.noise_scale`)
+            R_left = R_left * scale[found.pred_rows][:, None, None]
+        fx_px = float(run.vin.features.rig.K[0][0, 0])
+        return bearings_too_uncertain(S_left, R_left, fx_px, s.iterate_bearing_sigma_rad)
 
     def _landmark_sigma(self, slots: I64) -> float:
         """RMS standard deviation (m) of the landmarks in `slots` (nan for none)."""

@@ -591,6 +591,7 @@ def slam_settings(
         max_descriptor_distance=a.max_descriptor_distance,
         octave_bearing_variance=a.octave_bearing_variance,
         iterate_sigma_ratio=a.iterate_sigma_ratio,
+        iterate_bearing_sigma_rad=a.iterate_bearing_sigma_rad,
         max_update_iterations=a.max_update_iterations,
         max_landmarks=m.max_landmarks,
         landmarks_per_added_vehicle=m.landmarks_per_added_vehicle,
