@@ -1,7 +1,7 @@
 """Corrections too large for one linearisation (`estimation/linearisation.py`): when a
 vehicle is too uncertain for the frame it sees, or a landmark for its bearing, and the
 iterated update that brings a vehicle back after a camera blackout (BENCHMARKS.md "Fuse:
-large corrections") and a far landmark seen from the side in (BENCHMARKS.md "Fuse: a far
+large corrections") and a far landmark seen from the side (BENCHMARKS.md "Fuse: a far
 landmark seen from the side")."""
 
 from __future__ import annotations
