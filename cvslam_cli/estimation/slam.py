@@ -458,6 +458,8 @@ class Slam:
         pose_cov = VehiclePose.of(self.state, run.vin).cov[:3, :3]
         if too_uncertain(pose_cov, frame.p_cam_m, s.iterate_sigma_ratio):
             return True
+        if s.iterate_bearing_sigma_rad <= 0:  # off (the default): no per-frame work
+            return False
         S_left = found.pred.S[found.pred_rows][:, :2, :2]
         scale = found.pred.noise_scale
         R_left = self.updater.R_pixel_hat[:2, :2]
